@@ -1,0 +1,143 @@
+//! Backend and device selection: the only place in the crate that knows which Burn backends
+//! were compiled in (cargo features `flex`, `ndarray`, `wgpu`).
+//!
+//! The numerical code never names a backend. Burn 0.22 tensors are backend-erased
+//! (`Tensor<D>`); the backend is a property of the [`Device`] they live on, and this module
+//! is what turns a [`Backend`] choice into such a device.
+#![allow(deprecated)] // `Device::ndarray` is deprecated upstream in favour of flex.
+
+use std::fmt;
+
+use burn::tensor::{DType, Device};
+
+use crate::error::{Error, Result};
+
+/// A Burn backend this program can run on. Every variant exists in every build, so a
+/// request for a backend that was not compiled in is an error with a remedy, not a
+/// compile-time hole.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Backend {
+    /// Burn's pure-Rust CPU backend (SIMD, rayon, gemm); feature `flex`.
+    Flex,
+    /// The ndarray CPU backend; feature `ndarray` (deprecated by Burn 0.22).
+    NdArray,
+    /// wgpu on Vulkan, Metal or DX12 (or lavapipe without a GPU); feature `wgpu`.
+    Wgpu,
+}
+
+/// Floating-point precision of a computation.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Precision {
+    /// float32: what the program computes in.
+    F32,
+    /// float64: for finite-difference gradient checks (CPU backends only).
+    F64,
+}
+
+impl Precision {
+    /// The tensor dtype.
+    pub fn dtype(self) -> DType {
+        match self {
+            Precision::F32 => DType::F32,
+            Precision::F64 => DType::F64,
+        }
+    }
+}
+
+impl Backend {
+    /// All backends, compiled in or not, in order of preference for the default.
+    pub const ALL: [Backend; 3] = [Backend::Flex, Backend::NdArray, Backend::Wgpu];
+
+    /// The name used on the command line and in reports.
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Flex => "flex",
+            Backend::NdArray => "ndarray",
+            Backend::Wgpu => "wgpu",
+        }
+    }
+
+    /// The cargo feature that compiles this backend in.
+    pub fn feature(self) -> &'static str {
+        self.name()
+    }
+
+    /// Whether this build contains the backend.
+    pub fn is_compiled(self) -> bool {
+        match self {
+            Backend::Flex => cfg!(feature = "flex"),
+            Backend::NdArray => cfg!(feature = "ndarray"),
+            Backend::Wgpu => cfg!(feature = "wgpu"),
+        }
+    }
+
+    /// The backends compiled into this build.
+    pub fn compiled() -> Vec<Backend> {
+        Self::ALL.into_iter().filter(|b| b.is_compiled()).collect()
+    }
+
+    /// The default backend: the first compiled one of [`Backend::ALL`]. Flex comes first
+    /// because it is the faster CPU backend on every size we benchmarked (README).
+    pub fn default_compiled() -> Option<Backend> {
+        Self::ALL.into_iter().find(|b| b.is_compiled())
+    }
+
+    /// Whether the backend computes in `precision`.
+    pub fn supports(self, precision: Precision) -> bool {
+        // wgpu has no float64: on lavapipe exp/log/pow in f64 returned garbage silently.
+        !(self == Backend::Wgpu && precision == Precision::F64)
+    }
+
+    /// The device of this backend (without autodiff).
+    pub fn device(self) -> Result<Device> {
+        if !self.is_compiled() {
+            return Err(Error::BackendNotCompiled {
+                backend: self.name(),
+                feature: self.feature(),
+            });
+        }
+        Ok(self.device_unchecked())
+    }
+
+    /// Checks that `precision` is available and returns the device.
+    pub fn device_for(self, precision: Precision) -> Result<Device> {
+        let device = self.device()?;
+        if !self.supports(precision) {
+            return Err(Error::UnsupportedPrecision {
+                backend: self.name(),
+                dtype: "float64",
+            });
+        }
+        Ok(device)
+    }
+
+    fn device_unchecked(self) -> Device {
+        match self {
+            #[cfg(feature = "flex")]
+            Backend::Flex => Device::flex(),
+            #[cfg(feature = "ndarray")]
+            Backend::NdArray => Device::ndarray(),
+            #[cfg(feature = "wgpu")]
+            Backend::Wgpu => Device::wgpu(Default::default()),
+            #[allow(unreachable_patterns)]
+            _ => unreachable!("device() checks is_compiled first"),
+        }
+    }
+}
+
+impl fmt::Display for Backend {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, Self::Err> {
+        Self::ALL
+            .into_iter()
+            .find(|b| b.name().eq_ignore_ascii_case(s))
+            .ok_or_else(|| format!("unknown backend `{s}`: expected flex, ndarray or wgpu"))
+    }
+}

@@ -1,0 +1,9 @@
+//! The terms of the path energy, grouped by what they look at: the deformation
+//! ([`density`], [`regularizer`]), the image ([`anisotropy`]), an image pair ([`data`]), and
+//! the whole path ([`path`]).
+
+pub mod anisotropy;
+pub mod data;
+pub mod density;
+pub mod path;
+pub mod regularizer;

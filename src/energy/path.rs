@@ -1,0 +1,155 @@
+//! The discrete path energy `E` (SPEC §5) on one grid.
+
+use burn::tensor::Tensor;
+
+use crate::energy::anisotropy::Anisotropy;
+use crate::energy::data::{data_term, data_term_gradient};
+use crate::energy::regularizer::{regularizer, regularizer_gradient};
+use crate::error::{Error, Result};
+use crate::grid::Grid;
+use crate::params::EnergyParams;
+use crate::warp::BSpline;
+
+/// Largest number of feature values one batched warp may touch before the path energy is
+/// evaluated in chunks of frames: bounds the gather indices and autodiff state to a few
+/// hundred MB even for the deep model's 67 × 512² features.
+const CHUNK_ELEMENTS: usize = 1 << 24;
+
+/// The path energy of one level: parameters, the grid's operators, and the channel count
+/// `C_tot` of the feature vectors (3 for the RGB model, `3 + C` for the deep one).
+#[derive(Clone, Debug)]
+pub struct PathEnergy {
+    params: EnergyParams,
+    channels: usize,
+    bspline: BSpline,
+    anisotropy: Anisotropy,
+}
+
+/// The value of `E` and its parts.
+#[derive(Clone, Debug)]
+pub struct EnergyValue {
+    /// `E = K Σ_k (R_k + D_k / δ)`, `[1]`.
+    pub total: Tensor<1>,
+    /// `R_k = R[φ_k, a_k]`, `[K]`.
+    pub regularizer: Tensor<1>,
+    /// `D_k = D[f_{k−1}, f_k, φ_k]`, `[K]`.
+    pub data: Tensor<1>,
+}
+
+/// Hand-derived gradient of `E` (for the gradient checks).
+#[derive(Clone, Debug)]
+pub struct EnergyGradient {
+    /// `∂E/∂f_k` for the free frames `k = 1..K−1`, `[K−1, C, H, W]` (`a` held fixed).
+    pub f_interior: Tensor<4>,
+    /// `∂E/∂φ_k`, `k = 1..K`, `[K, 2, H, W]`.
+    pub phi: Tensor<4>,
+}
+
+impl PathEnergy {
+    /// The path energy on `grid` for features with `channels` channels.
+    ///
+    /// # Errors
+    ///
+    /// If a parameter is out of range or `channels` is 0.
+    pub fn new(grid: &Grid, params: EnergyParams, channels: usize) -> Result<Self> {
+        params.validate()?;
+        if channels == 0 {
+            return Err(Error::InvalidParameter {
+                name: "channels",
+                value: "0".into(),
+                expected: "at least 1",
+            });
+        }
+        Ok(Self {
+            params,
+            channels,
+            bspline: BSpline::new(grid),
+            anisotropy: Anisotropy::new(grid, params.sigma, params.rho, params.xi1, params.xi2)?,
+        })
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &EnergyParams {
+        &self.params
+    }
+
+    /// `C_tot`.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// The grid's B-spline interpolator.
+    pub fn bspline(&self) -> &BSpline {
+        &self.bspline
+    }
+
+    /// The grid's anisotropy operator.
+    pub fn anisotropy(&self) -> &Anisotropy {
+        &self.anisotropy
+    }
+
+    /// `E[f_0..f_K, φ_1..φ_K, a_1..a_K]` and its parts (SPEC §5).
+    ///
+    /// # Shapes
+    /// - `f`: `[K+1, C, H, W]`, `phi`: `[K, 2, H, W]`, `a`: `[K, H, W]`
+    pub fn value(&self, f: Tensor<4>, phi: Tensor<4>, a: Tensor<3>) -> EnergyValue {
+        let [k, _, _, _] = phi.dims();
+        let regularizer = regularizer(phi.clone(), a, self.params.lambda, self.params.mu);
+        let data = self.data_terms(f, phi);
+        let per_step = regularizer.clone() + data.clone().div_scalar(self.params.delta);
+        EnergyValue {
+            total: per_step.sum().mul_scalar(k as f64),
+            regularizer,
+            data,
+        }
+    }
+
+    /// `D_k` for `k = 1..K`, batched over frames in chunks of at most [`CHUNK_ELEMENTS`].
+    fn data_terms(&self, f: Tensor<4>, phi: Tensor<4>) -> Tensor<1> {
+        let [k, _, h, w] = phi.dims();
+        let c = f.dims()[1];
+        let chunk = (CHUNK_ELEMENTS / (c * h * w)).clamp(1, k);
+        let parts: Vec<Tensor<1>> = (0..k)
+            .step_by(chunk)
+            .map(|start| {
+                let len = chunk.min(k - start);
+                data_term(
+                    &self.bspline,
+                    f.clone().narrow(0, start, len),
+                    f.clone().narrow(0, start + 1, len),
+                    phi.clone().narrow(0, start, len),
+                    self.channels,
+                )
+            })
+            .collect();
+        Tensor::cat(parts, 0)
+    }
+
+    /// The hand-derived gradient of [`value`](Self::value) with respect to the free frames
+    /// and the deformations, `a` held fixed.
+    pub fn gradient(&self, f: Tensor<4>, phi: Tensor<4>, a: Tensor<3>) -> EnergyGradient {
+        let [k, _, _, _] = phi.dims();
+        let p = &self.params;
+        let scale = k as f64;
+        let d = data_term_gradient(
+            &self.bspline,
+            f.clone().narrow(0, 0, k),
+            f.narrow(0, 1, k),
+            phi.clone(),
+            self.channels,
+        );
+        let r = regularizer_gradient(phi, a, p.lambda, p.mu);
+        let grad_phi = (r + d.phi.div_scalar(p.delta)).mul_scalar(scale);
+        // f_k is the warped frame of D_k and the fixed frame of D_{k+1}.
+        let f_interior = if k > 1 {
+            (d.f_tilde.narrow(0, 0, k - 1) + d.f.narrow(0, 1, k - 1)).mul_scalar(scale / p.delta)
+        } else {
+            let [_, c, h, w] = d.f.dims();
+            Tensor::zeros([0, c, h, w], (&d.f.device(), d.f.dtype()))
+        };
+        EnergyGradient {
+            f_interior,
+            phi: grad_phi,
+        }
+    }
+}

@@ -1,0 +1,49 @@
+//! The library's error type.
+
+use thiserror::Error;
+
+/// Everything that can go wrong in the library. Messages name the offending value and what
+/// would have been valid, so the CLI can print them as they are.
+#[derive(Debug, Error)]
+pub enum Error {
+    /// A backend was asked for that this build does not contain.
+    #[error("the {backend} backend is not compiled into this build; rebuild with `--features {feature}`")]
+    BackendNotCompiled {
+        /// Backend name as the CLI spells it.
+        backend: &'static str,
+        /// Cargo feature that enables it.
+        feature: &'static str,
+    },
+
+    /// The backend cannot compute in the requested precision.
+    #[error("the {backend} backend does not support {dtype}")]
+    UnsupportedPrecision {
+        /// Backend name.
+        backend: &'static str,
+        /// The precision asked for.
+        dtype: &'static str,
+    },
+
+    /// A model or solver parameter is out of its valid range.
+    #[error("invalid {name} = {value}: must be {expected}")]
+    InvalidParameter {
+        /// Parameter name (as in SPEC §9 and the CLI).
+        name: &'static str,
+        /// The rejected value, as written.
+        value: String,
+        /// The valid range, in words.
+        expected: &'static str,
+    },
+
+    /// Tensor arguments whose shapes do not fit together.
+    #[error("{op}: {detail}")]
+    Shape {
+        /// The operation that checked the shapes.
+        op: &'static str,
+        /// Which shapes, and what was expected.
+        detail: String,
+    },
+}
+
+/// Shorthand for results of this crate.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

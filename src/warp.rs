@@ -1,0 +1,260 @@
+//! The cubic B-spline warp `T[f, φ]` (SPEC §1).
+//!
+//! `T[f, φ](x) = Σ c(m(i), m(j)) β(φ₀(x) − i) β(φ₁(x) − j)` with `c = P f` the interpolating
+//! coefficients and `m` the mirror index. The prefilter `P` is exact (dense inverse of the
+//! mirrored tridiagonal system, [`crate::stencil::bspline_prefilter`]) and applied as two
+//! matmuls; the evaluation gathers the 4 × 4 coefficients around each sample point and
+//! weighs them with the B-spline polynomials of the fractional position. Both are plain
+//! tensor ops, so autodiff differentiates `T` with respect to `f` and to `φ`.
+//!
+//! The hand-derived adjoints ([`BSpline::interpolate_adjoint`],
+//! [`BSpline::interpolate_position_derivative`]) exist for the gradient checks; the solver
+//! takes its gradients from autodiff.
+
+use burn::tensor::{IndexingUpdateOp, Int, Tensor};
+
+use crate::grid::Grid;
+use crate::separable::Separable;
+use crate::stencil::bspline_prefilter;
+
+/// The cubic B-spline interpolator of one grid: the prefilter, ready on the device, and the
+/// evaluation at arbitrary sample points.
+#[derive(Clone, Debug)]
+pub struct BSpline {
+    grid: Grid,
+    prefilter: Separable,
+}
+
+/// Where each sample point falls: per axis, the 4 mirrored grid indices and the 4 B-spline
+/// weights (and their derivatives) of the fractional position.
+struct Stencil {
+    /// Flat indices `m(i)·W + m(j)` for the 16 neighbours, `[N, 1, P]` each, `a` major.
+    flat: Vec<Tensor<3, Int>>,
+    /// Row weights `β(p₀ − i)`, `[N, 1, P]` each.
+    w0: [Tensor<3>; 4],
+    /// Column weights `β(p₁ − j)`, `[N, 1, P]` each.
+    w1: [Tensor<3>; 4],
+    /// Fractional positions (after clamping), `[N, 1, P]`.
+    t0: Tensor<3>,
+    t1: Tensor<3>,
+    /// 1 where the sample point lies inside the clamp range on each axis, else 0.
+    inside0: Tensor<3>,
+    inside1: Tensor<3>,
+}
+
+/// The 4 cubic B-spline weights `β(t+1), β(t), β(t−1), β(t−2)` for `t ∈ [0, 1)`, as
+/// polynomials (each in its branch of SPEC §1's `β`), so their autodiff derivative is `β'`.
+fn bspline_weights(t: Tensor<3>) -> [Tensor<3>; 4] {
+    let s = t.clone().neg().add_scalar(1.0); // 1 − t
+    let t2 = t.clone().square();
+    let t3 = t2.clone() * t.clone();
+    let s2 = s.clone().square();
+    let s3 = s2.clone() * s.clone();
+    [
+        s3.clone().div_scalar(6.0),
+        t3.clone().mul_scalar(0.5) - t2 + (2.0 / 3.0),
+        s3.mul_scalar(0.5) - s2 + (2.0 / 3.0),
+        t3.div_scalar(6.0),
+    ]
+}
+
+/// `d/dt` of [`bspline_weights`]: the hand-derived `β'` for the gradient checks.
+fn bspline_weight_derivatives(t: Tensor<3>) -> [Tensor<3>; 4] {
+    let s = t.clone().neg().add_scalar(1.0);
+    let t2 = t.clone().square();
+    let s2 = s.clone().square();
+    [
+        s2.clone().mul_scalar(-0.5),
+        t2.clone().mul_scalar(1.5) - t.mul_scalar(2.0),
+        s.mul_scalar(2.0) - s2.mul_scalar(1.5),
+        t2.mul_scalar(0.5),
+    ]
+}
+
+/// Whole-sample mirror of integer-valued float indices in `[−1, n+1]` (SPEC §0), valid for
+/// `n ≥ 4`, which covers every index a clamped cubic stencil reads.
+fn mirror(i: Tensor<3>, n: usize) -> Tensor<3> {
+    let last = (n - 1) as f64;
+    i.abs().sub_scalar(last).abs().neg().add_scalar(last)
+}
+
+impl BSpline {
+    /// The interpolator for `grid` (builds the `H × H` and `W × W` prefilter matrices).
+    pub fn new(grid: &Grid) -> Self {
+        let prefilter = Separable::new(
+            grid,
+            &bspline_prefilter(grid.height()),
+            &bspline_prefilter(grid.width()),
+        );
+        Self {
+            grid: grid.clone(),
+            prefilter,
+        }
+    }
+
+    /// The grid this interpolator belongs to.
+    pub fn grid(&self) -> &Grid {
+        &self.grid
+    }
+
+    /// Interpolation coefficients `c = P f` (SPEC §1), per channel.
+    ///
+    /// A frame's coefficients can be computed once and reused for every warp of that frame.
+    ///
+    /// # Shapes
+    /// - `f`: `[N, C, H, W]`
+    /// - output: `[N, C, H, W]`
+    pub fn coefficients(&self, f: Tensor<4>) -> Tensor<4> {
+        self.prefilter.apply(f)
+    }
+
+    /// Adjoint of [`coefficients`](Self::coefficients): `Pᵀ` applied per channel.
+    pub fn coefficients_adjoint(&self, g: Tensor<4>) -> Tensor<4> {
+        self.prefilter.apply_adjoint(g)
+    }
+
+    /// The warp `T[f, φ] = interpolate(P f, φ)`.
+    ///
+    /// # Shapes
+    /// - `f`: `[N, C, H, W]`
+    /// - `phi`: `[N, 2, H', W']`, pixel units (`phi[:, 0]` rows, `phi[:, 1]` columns)
+    /// - output: `[N, C, H', W']`
+    pub fn warp(&self, f: Tensor<4>, phi: Tensor<4>) -> Tensor<4> {
+        self.interpolate(self.coefficients(f), phi)
+    }
+
+    /// Evaluates the spline with coefficients `coeffs` at the points `phi`, clamped to
+    /// `[0, H−1] × [0, W−1]` (SPEC §1).
+    ///
+    /// # Shapes
+    /// - `coeffs`: `[N, C, H, W]`
+    /// - `phi`: `[N, 2, H', W']`
+    /// - output: `[N, C, H', W']`
+    pub fn interpolate(&self, coeffs: Tensor<4>, phi: Tensor<4>) -> Tensor<4> {
+        let [n, c, h, w] = coeffs.dims();
+        let [_, _, ho, wo] = phi.dims();
+        let st = self.stencil(phi);
+        let coeffs = coeffs.reshape([n, c, h * w]);
+        let mut out: Option<Tensor<3>> = None;
+        for a in 0..4 {
+            let mut row: Option<Tensor<3>> = None;
+            for b in 0..4 {
+                let idx = st.flat[4 * a + b].clone().expand([n, c, ho * wo]);
+                let term = coeffs.clone().gather(2, idx) * st.w1[b].clone();
+                row = Some(match row {
+                    Some(r) => r + term,
+                    None => term,
+                });
+            }
+            let term = row.expect("4 columns") * st.w0[a].clone();
+            out = Some(match out {
+                Some(o) => o + term,
+                None => term,
+            });
+        }
+        out.expect("4 rows").reshape([n, c, ho, wo])
+    }
+
+    /// The adjoint of [`interpolate`](Self::interpolate) in its coefficients, by scatter-add:
+    /// `Bᵀ y` with `B` the (φ-dependent) evaluation matrix. Hand-derived, for gradient checks.
+    ///
+    /// # Shapes
+    /// - `y`: `[N, C, H', W']`
+    /// - `phi`: `[N, 2, H', W']`
+    /// - output: `[N, C, H, W]`
+    pub fn interpolate_adjoint(&self, y: Tensor<4>, phi: Tensor<4>) -> Tensor<4> {
+        let [n, c, ho, wo] = y.dims();
+        let (h, w) = (self.grid.height(), self.grid.width());
+        let st = self.stencil(phi);
+        let y = y.reshape([n, c, ho * wo]);
+        let mut acc = Tensor::<3>::zeros([n, c, h * w], (&y.device(), y.dtype()));
+        for a in 0..4 {
+            for b in 0..4 {
+                let idx = st.flat[4 * a + b].clone().expand([n, c, ho * wo]);
+                let values = y.clone() * (st.w0[a].clone() * st.w1[b].clone());
+                acc = acc.scatter(2, idx, values, IndexingUpdateOp::Add);
+            }
+        }
+        acc.reshape([n, c, h, w])
+    }
+
+    /// The derivative of the interpolant with respect to the sample position, via `β'`:
+    /// `∂T/∂p₀` and `∂T/∂p₁` per channel, zero on an axis where the point lies outside the
+    /// clamp range (the clamped function is constant there). Hand-derived, for gradient
+    /// checks.
+    ///
+    /// # Shapes
+    /// - `coeffs`: `[N, C, H, W]`
+    /// - `phi`: `[N, 2, H', W']`
+    /// - output: (`[N, C, H', W']`, `[N, C, H', W']`)
+    pub fn interpolate_position_derivative(
+        &self,
+        coeffs: Tensor<4>,
+        phi: Tensor<4>,
+    ) -> (Tensor<4>, Tensor<4>) {
+        let [n, c, h, w] = coeffs.dims();
+        let [_, _, ho, wo] = phi.dims();
+        let st = self.stencil(phi);
+        let dw0 = bspline_weight_derivatives(st.t0.clone());
+        let dw1 = bspline_weight_derivatives(st.t1.clone());
+        let coeffs = coeffs.reshape([n, c, h * w]);
+        let zeros = Tensor::<3>::zeros([n, c, ho * wo], (&coeffs.device(), coeffs.dtype()));
+        let (mut d0, mut d1) = (zeros.clone(), zeros);
+        for a in 0..4 {
+            for b in 0..4 {
+                let idx = st.flat[4 * a + b].clone().expand([n, c, ho * wo]);
+                let g = coeffs.clone().gather(2, idx);
+                d0 = d0 + g.clone() * (dw0[a].clone() * st.w1[b].clone());
+                d1 = d1 + g * (st.w0[a].clone() * dw1[b].clone());
+            }
+        }
+        let d0 = (d0 * st.inside0).reshape([n, c, ho, wo]);
+        let d1 = (d1 * st.inside1).reshape([n, c, ho, wo]);
+        (d0, d1)
+    }
+
+    fn stencil(&self, phi: Tensor<4>) -> Stencil {
+        let [n, two, ho, wo] = phi.dims();
+        assert_eq!(two, 2, "a deformation has 2 components, got shape {:?}", phi.dims());
+        let (h, w) = (self.grid.height(), self.grid.width());
+        let p = phi.reshape([n, 2, ho * wo]);
+        let p0 = p.clone().narrow(1, 0, 1);
+        let p1 = p.narrow(1, 1, 1);
+        let inside = |q: &Tensor<3>, hi: f64| {
+            let q = q.clone().detach();
+            let ok = q.clone().greater_equal_elem(0.0).float() * q.lower_equal_elem(hi).float();
+            ok
+        };
+        let inside0 = inside(&p0, (h - 1) as f64);
+        let inside1 = inside(&p1, (w - 1) as f64);
+        let p0 = p0.clamp(0.0, (h - 1) as f64);
+        let p1 = p1.clamp(0.0, (w - 1) as f64);
+        // The integer part carries no gradient; the fractional part carries all of it.
+        let fl0 = p0.clone().detach().floor();
+        let fl1 = p1.clone().detach().floor();
+        let t0 = p0 - fl0.clone();
+        let t1 = p1 - fl1.clone();
+        let rows: Vec<Tensor<3>> = (0..4)
+            .map(|a| mirror(fl0.clone().add_scalar(a as f64 - 1.0), h))
+            .collect();
+        let cols: Vec<Tensor<3>> = (0..4)
+            .map(|b| mirror(fl1.clone().add_scalar(b as f64 - 1.0), w))
+            .collect();
+        let mut flat = Vec::with_capacity(16);
+        for r in &rows {
+            let base = r.clone().mul_scalar(w as f64);
+            for col in &cols {
+                flat.push((base.clone() + col.clone()).int());
+            }
+        }
+        Stencil {
+            flat,
+            w0: bspline_weights(t0.clone()),
+            w1: bspline_weights(t1.clone()),
+            t0: t0.detach(),
+            t1: t1.detach(),
+            inside0,
+            inside1,
+        }
+    }
+}

@@ -1,0 +1,194 @@
+//! Shared test support: golden vectors, tensor conversion, tolerant comparison, and the
+//! macro that runs one test body on every compiled backend.
+#![allow(dead_code)] // each test binary uses a different subset
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+use burn::tensor::{DType, Device, Tensor, TensorData};
+use deepmorph::{Backend, Grid, Precision};
+use serde::Deserialize;
+
+/// Runs the listed test bodies (`fn(Backend)`) once per compiled backend, as
+/// `flex::name`, `ndarray::name`, `wgpu::name`. `cargo test wgpu::` selects one backend.
+#[macro_export]
+macro_rules! on_each_backend {
+    ($($name:ident),* $(,)?) => {
+        #[cfg(feature = "flex")]
+        mod flex {
+            $( #[test] fn $name() { super::$name(deepmorph::Backend::Flex) } )*
+        }
+        #[cfg(feature = "ndarray")]
+        mod ndarray {
+            $( #[test] fn $name() { super::$name(deepmorph::Backend::NdArray) } )*
+        }
+        #[cfg(feature = "wgpu")]
+        mod wgpu {
+            $( #[test] fn $name() { super::$name(deepmorph::Backend::Wgpu) } )*
+        }
+    };
+}
+
+/// Like [`on_each_backend`] for float64 tests: CPU backends only (wgpu has no float64).
+#[macro_export]
+macro_rules! on_each_cpu_backend {
+    ($($name:ident),* $(,)?) => {
+        #[cfg(feature = "flex")]
+        mod flex {
+            $( #[test] fn $name() { super::$name(deepmorph::Backend::Flex) } )*
+        }
+        #[cfg(feature = "ndarray")]
+        mod ndarray {
+            $( #[test] fn $name() { super::$name(deepmorph::Backend::NdArray) } )*
+        }
+    };
+}
+
+/// One tensor of a golden case: shape and row-major values (`+inf` decoded).
+#[derive(Clone, Debug)]
+pub struct Array {
+    pub shape: Vec<usize>,
+    pub data: Vec<f64>,
+}
+
+#[derive(Deserialize)]
+struct RawArray {
+    shape: Vec<usize>,
+    data: Vec<serde_json::Value>,
+}
+
+impl From<RawArray> for Array {
+    fn from(raw: RawArray) -> Self {
+        let data = raw
+            .data
+            .iter()
+            .map(|v| match v {
+                serde_json::Value::Number(n) => n.as_f64().expect("finite number"),
+                serde_json::Value::String(s) if s == "inf" => f64::INFINITY,
+                other => panic!("unexpected golden datum {other}"),
+            })
+            .collect();
+        Array {
+            shape: raw.shape,
+            data,
+        }
+    }
+}
+
+#[derive(Deserialize)]
+struct RawCase {
+    name: String,
+    params: serde_json::Value,
+    inputs: HashMap<String, RawArray>,
+    outputs: HashMap<String, RawArray>,
+}
+
+/// A golden case from `tests/golden/NAME.json`.
+pub struct Golden {
+    pub name: String,
+    pub params: serde_json::Value,
+    pub inputs: HashMap<String, Array>,
+    pub outputs: HashMap<String, Array>,
+}
+
+impl Golden {
+    pub fn load(name: &str) -> Self {
+        let path = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+            .join("tests/golden")
+            .join(format!("{name}.json"));
+        let text = std::fs::read_to_string(&path)
+            .unwrap_or_else(|e| panic!("reading {}: {e}", path.display()));
+        let raw: RawCase = serde_json::from_str(&text).expect("golden JSON");
+        Golden {
+            name: raw.name,
+            params: raw.params,
+            inputs: raw.inputs.into_iter().map(|(k, v)| (k, v.into())).collect(),
+            outputs: raw.outputs.into_iter().map(|(k, v)| (k, v.into())).collect(),
+        }
+    }
+
+    pub fn input(&self, name: &str) -> &Array {
+        self.inputs
+            .get(name)
+            .unwrap_or_else(|| panic!("{}: no input {name}", self.name))
+    }
+
+    pub fn output(&self, name: &str) -> &Array {
+        self.outputs
+            .get(name)
+            .unwrap_or_else(|| panic!("{}: no output {name}", self.name))
+    }
+
+    pub fn param(&self, name: &str) -> f64 {
+        self.params[name]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{}: no numeric param {name}", self.name))
+    }
+}
+
+/// The device of `backend` in `precision`, with autodiff enabled when asked.
+pub fn device(backend: Backend, precision: Precision, autodiff: bool) -> Device {
+    let device = backend
+        .device_for(precision)
+        .unwrap_or_else(|e| panic!("{e}"));
+    if autodiff { device.autodiff() } else { device }
+}
+
+/// A grid matching the last two dimensions of `shape`.
+pub fn grid_for(shape: &[usize], device: &Device, dtype: DType) -> Grid {
+    let n = shape.len();
+    Grid::new(shape[n - 2], shape[n - 1], device, dtype).expect("grid")
+}
+
+/// `array` as a tensor of rank `D`, with leading unit dimensions added as needed
+/// (golden single images `[C, H, W]` become batches `[1, C, H, W]`).
+pub fn tensor<const D: usize>(array: &Array, device: &Device, dtype: DType) -> Tensor<D> {
+    assert!(array.shape.len() <= D, "rank {} > {D}", array.shape.len());
+    let mut shape = vec![1; D - array.shape.len()];
+    shape.extend(&array.shape);
+    Tensor::from_data(TensorData::new(array.data.clone(), shape), (device, dtype))
+}
+
+/// The values of a tensor on the host.
+pub fn values<const D: usize>(t: Tensor<D>) -> Vec<f64> {
+    t.into_data().convert::<f64>().to_vec().expect("float data")
+}
+
+/// Asserts `max|got − want| ≤ rel · max|want| + abs` (SPEC "Golden vectors": relative to the
+/// tensor's own largest magnitude). Infinite entries must match exactly.
+pub fn assert_close(what: &str, got: &[f64], want: &[f64], rel: f64, abs: f64) {
+    assert_eq!(got.len(), want.len(), "{what}: length");
+    let scale = want
+        .iter()
+        .filter(|v| v.is_finite())
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    let mut worst = (0.0f64, 0usize);
+    for (i, (&g, &w)) in got.iter().zip(want).enumerate() {
+        if w.is_infinite() || g.is_infinite() {
+            assert_eq!(g, w, "{what}[{i}]: infinite entries must agree");
+            continue;
+        }
+        assert!(g.is_finite(), "{what}[{i}] = {g} is not finite");
+        let err = (g - w).abs();
+        if err > worst.0 {
+            worst = (err, i);
+        }
+    }
+    let bound = rel * scale + abs;
+    assert!(
+        worst.0 <= bound,
+        "{what}: max error {:.3e} at [{}] (got {}, want {}) exceeds {:.3e} = {rel:e}·{scale:.3e} + {abs:e}",
+        worst.0,
+        worst.1,
+        got[worst.1],
+        want[worst.1],
+        bound
+    );
+}
+
+/// [`assert_close`] against a golden array with the SPEC's float32 tolerance: 1e-4 relative
+/// to the tensor's largest magnitude, plus an absolute floor of 1e-7 that matters only for
+/// tensors that are zero up to rounding (e.g. `T[f, Id] − f`).
+pub fn assert_golden(what: &str, got: &[f64], want: &Array) {
+    assert_close(what, got, &want.data, 1e-4, 1e-7);
+}
