@@ -106,9 +106,8 @@ pub fn admissible_each(grid: &Grid, phi: Tensor<4>) -> Vec<bool> {
     let min_det = jacobian(phi).det().reshape([n, h * w]).min_dim(1).reshape([n]);
     let values: Vec<f64> = Tensor::cat(vec![boundary_max, min_det], 0)
         .into_data()
-        .convert::<f64>()
-        .to_vec()
-        .expect("float data");
+        .try_into_vec_as::<f64>()
+        .expect("float tensors convert to f64");
     // A NaN anywhere fails both comparisons, so it is never admissible.
     (0..n)
         .map(|k| values[k] == 0.0 && values[n + k] > 0.0)
