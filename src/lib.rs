@@ -10,6 +10,10 @@
 //! float64 for the finite-difference checks. Images and features are batches
 //! `[N, C, H, W]`, deformations `[N, 2, H, W]` in pixel units (`[:, 0]` = row).
 //!
+//! Scalars enter as `mul_scalar(1.0 / x)`, never `div_scalar(x)`: Burn 0.22's autodiff
+//! backward of `div_scalar` multiplies by `1 / x` rounded to float32, even for float64
+//! tensors, which the float64 gradient checks see at 1e-8 relative.
+//!
 //! - [`stencil`], [`separable`]: the mirror-boundary linear operators (SPEC §0).
 //! - [`warp`]: the cubic B-spline warp `T[f, φ]` (SPEC §1).
 //! - [`deformation`]: Jacobian and admissibility (SPEC §2).

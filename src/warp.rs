@@ -51,10 +51,10 @@ fn bspline_weights(t: Tensor<3>) -> [Tensor<3>; 4] {
     let s2 = s.clone().square();
     let s3 = s2.clone() * s.clone();
     [
-        s3.clone().div_scalar(6.0),
+        s3.clone().mul_scalar(1.0 / 6.0),
         t3.clone().mul_scalar(0.5) - t2 + (2.0 / 3.0),
         s3.mul_scalar(0.5) - s2 + (2.0 / 3.0),
-        t3.div_scalar(6.0),
+        t3.mul_scalar(1.0 / 6.0),
     ]
 }
 
@@ -220,10 +220,12 @@ impl BSpline {
         let p = phi.reshape([n, 2, ho * wo]);
         let p0 = p.clone().narrow(1, 0, 1);
         let p1 = p.narrow(1, 1, 1);
+        // Built by masking (not `Bool::float()`, which would take the device's default
+        // dtype) so the indicator has the dtype of `phi`.
         let inside = |q: &Tensor<3>, hi: f64| {
             let q = q.clone().detach();
-            let ok = q.clone().greater_equal_elem(0.0).float() * q.lower_equal_elem(hi).float();
-            ok
+            let outside = q.clone().lower_elem(0.0).bool_or(q.clone().greater_elem(hi));
+            q.ones_like().mask_fill(outside, 0.0)
         };
         let inside0 = inside(&p0, (h - 1) as f64);
         let inside1 = inside(&p1, (w - 1) as f64);

@@ -70,7 +70,7 @@ impl Anisotropy {
         let d0 = self.along_rows.apply(u.clone());
         let d1 = self.along_cols.apply(u);
         let norm2 = (d0.square() + d1.square()).sum_dim(1).reshape([n, h, w]);
-        norm2.div_scalar(-self.xi1).exp().add_scalar(self.xi2)
+        norm2.mul_scalar(-1.0 / self.xi1).exp().add_scalar(self.xi2)
     }
 }
 

@@ -96,7 +96,7 @@ impl PathEnergy {
         let [k, _, _, _] = phi.dims();
         let regularizer = regularizer(phi.clone(), a, self.params.lambda, self.params.mu);
         let data = self.data_terms(f, phi);
-        let per_step = regularizer.clone() + data.clone().div_scalar(self.params.delta);
+        let per_step = regularizer.clone() + data.clone().mul_scalar(1.0 / self.params.delta);
         EnergyValue {
             total: per_step.sum().mul_scalar(k as f64),
             regularizer,
@@ -139,7 +139,7 @@ impl PathEnergy {
             self.channels,
         );
         let r = regularizer_gradient(phi, a, p.lambda, p.mu);
-        let grad_phi = (r + d.phi.div_scalar(p.delta)).mul_scalar(scale);
+        let grad_phi = (r + d.phi.mul_scalar(1.0 / p.delta)).mul_scalar(scale);
         // f_k is the warped frame of D_k and the fixed frame of D_{k+1}.
         let f_interior = if k > 1 {
             (d.f_tilde.narrow(0, 0, k - 1) + d.f.narrow(0, 1, k - 1)).mul_scalar(scale / p.delta)

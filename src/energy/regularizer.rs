@@ -27,7 +27,7 @@ pub fn regularizer(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor
 pub fn regularizer_gradient(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<4> {
     let [_, _, h, w] = phi.dims();
     let g = density_gradient(&jacobian(phi), lambda, mu);
-    let scale = a.div_scalar((h * w) as f64);
+    let scale = a.mul_scalar(1.0 / (h * w) as f64);
     jacobian_adjoint(Jacobian {
         j00: g.j00 * scale.clone(),
         j01: g.j01 * scale.clone(),
