@@ -15,7 +15,7 @@
 mod common;
 
 use burn::tensor::{DType, Device, Tensor};
-use common::{assert_close, device, values};
+use common::{Rng, assert_close, device, values};
 use deepmorph::deformation::{Jacobian, admissible_each};
 use deepmorph::energy::data::{data_term, data_term_gradient};
 use deepmorph::energy::density::{density, density_gradient};
@@ -31,84 +31,6 @@ const FINITE_DIFFERENCE: (f64, f64) = (1e-6, 1e-11);
 /// Non-square on purpose: a swapped axis cannot hide.
 const H: usize = 10;
 const W: usize = 12;
-
-/// SplitMix64: a tiny, well-mixed generator, so the inputs never depend on a crate version.
-struct Rng(u64);
-
-impl Rng {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[−1, 1)`.
-    fn symmetric(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 52) as f64 - 1.0
-    }
-
-    /// `c` smooth maps in `[0.5 − 0.5, 0.5 + 0.5]`: 9 cosine modes per channel.
-    fn smooth_image(&mut self, c: usize, h: usize, w: usize) -> Vec<f64> {
-        let mut out = Vec::with_capacity(c * h * w);
-        for _ in 0..c {
-            let modes: Vec<(f64, f64, f64)> = (0..9)
-                .map(|m| ((m / 3) as f64, (m % 3) as f64, 0.12 * self.symmetric()))
-                .collect();
-            let phase = self.symmetric();
-            for i in 0..h {
-                for j in 0..w {
-                    let (x, y) = (i as f64 / (h - 1) as f64, j as f64 / (w - 1) as f64);
-                    let v: f64 = modes
-                        .iter()
-                        .map(|&(p, q, a)| a * (std::f64::consts::PI * (p * x + q * y) + phase).cos())
-                        .sum();
-                    out.push(0.5 + v);
-                }
-            }
-        }
-        out
-    }
-
-    /// `n` deformations `[n, 2, h, w]` in pixel units: `Id + v` with `v` a sine series that
-    /// vanishes on the boundary, `|∂v| ≲ 1.05 · amplitude` (admissible for `amplitude < 0.9`).
-    fn smooth_deformation(&mut self, n: usize, h: usize, w: usize, amplitude: f64) -> Vec<f64> {
-        let mut out = Vec::with_capacity(n * 2 * h * w);
-        for _ in 0..n {
-            for axis in 0..2 {
-                let modes: Vec<(f64, f64, f64)> = (0..4)
-                    .map(|m| ((1 + m / 2) as f64, (1 + m % 2) as f64, self.symmetric()))
-                    .collect();
-                for i in 0..h {
-                    for j in 0..w {
-                        let (x, y) = (i as f64 / (h - 1) as f64, j as f64 / (w - 1) as f64);
-                        let pi = std::f64::consts::PI;
-                        // sin(π p) is 1e-16, not 0: the boundary must be Id exactly.
-                        let edge = i == 0 || j == 0 || i == h - 1 || j == w - 1;
-                        let v: f64 = if edge { 0.0 } else { 1.0 } * modes
-                            .iter()
-                            .map(|&(p, q, a)| a * (pi * p * x).sin() * (pi * q * y).sin())
-                            .sum::<f64>()
-                            * amplitude
-                            / 2.0;
-                        let id = if axis == 0 { i } else { j } as f64;
-                        out.push(id + v);
-                    }
-                }
-            }
-        }
-        out
-    }
-
-    /// Anisotropy-like weights in `(0, 1]`.
-    fn weights(&mut self, n: usize, h: usize, w: usize) -> Vec<f64> {
-        self.smooth_image(n, h, w)
-            .into_iter()
-            .map(|v| v.clamp(0.05, 1.0))
-            .collect()
-    }
-}
 
 /// Finite differences of a batched function at `x`, every entry, `O(h²)` accurate.
 ///
