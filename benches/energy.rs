@@ -1,1 +1,115 @@
-fn main(){}
+//! Baseline costs of the discrete model on each compiled backend, float32:
+//!
+//! - `warp/BACKEND/C{c}/{n}`: `T[f, φ]` (prefilter + cubic interpolation) of one
+//!   `[1, C, n, n]` frame;
+//! - `step/BACKEND/C{c}/{n}`: value and autodiff gradient of one step of `E`,
+//!   `R[φ_k, a_k] + D[f_{k−1}, f_k, φ_k]`, w.r.t. `φ_k`, `f_{k−1}` and `f_k`.
+//!
+//! `C = 3` is the RGB model, `C = 67` the deep model's finest level (relu1_2 + η RGB). The
+//! deformation is a smooth admissible one with displacements of a few pixels, so the gathers
+//! read scattered memory as in a real sweep. Every timed iteration ends with `device.sync()`.
+//!
+//! ```text
+//! cargo bench --features ndarray,flex --bench energy                 # everything
+//! cargo bench --features ndarray,flex --bench energy -- 'step/flex'  # a subset
+//! ```
+//!
+//! Peak memory of one configuration: run the bench binary on it alone under
+//! `/usr/bin/time -v` (see the README).
+
+use std::time::Duration;
+
+use burn::tensor::{Device, Tensor};
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use deepmorph::energy::path::PathEnergy;
+use deepmorph::warp::BSpline;
+use deepmorph::{Backend, EnergyParams, Grid, Precision};
+
+const SIZES: [usize; 4] = [64, 128, 256, 512];
+const CHANNELS: [usize; 2] = [3, 67];
+
+/// `c` smooth maps on an `n × n` grid, `[1, c, n, n]`.
+fn image(grid: &Grid, c: usize, seed: f64) -> Tensor<4> {
+    let n = grid.height();
+    let values = (0..c * n * n)
+        .map(|p| {
+            let (ch, i, j) = (p / (n * n), (p / n) % n, p % n);
+            let (x, y) = (i as f64 / n as f64, j as f64 / n as f64);
+            0.5 + 0.4 * (6.0 * x + 4.0 * y + ch as f64 + seed).sin() * (5.0 * y - 3.0 * x).cos()
+        })
+        .collect();
+    grid.tensor(values, [1, c, n, n])
+}
+
+/// `Id` plus a smooth displacement of up to `0.02 n` pixels that vanishes on the boundary.
+fn deformation(grid: &Grid) -> Tensor<4> {
+    let n = grid.height();
+    let amplitude = 0.02 * n as f64;
+    let pi = std::f64::consts::PI;
+    let values = (0..2 * n * n)
+        .map(|p| {
+            let (axis, i, j) = (p / (n * n), (p / n) % n, p % n);
+            let (x, y) = (i as f64 / (n - 1) as f64, j as f64 / (n - 1) as f64);
+            let bump = (pi * x).sin() * (pi * y).sin();
+            let id = if axis == 0 { i } else { j } as f64;
+            let swirl = if axis == 0 { (2.0 * pi * y).sin() } else { (2.0 * pi * x).cos() };
+            id + amplitude * bump * bump * swirl
+        })
+        .collect();
+    grid.tensor(values, [1, 2, n, n])
+}
+
+fn sync(device: &Device) {
+    device.sync().expect("device sync");
+}
+
+fn benches(c: &mut Criterion) {
+    for backend in Backend::compiled() {
+        let Ok(plain) = backend.device_for(Precision::F32) else {
+            continue;
+        };
+        let autodiff = plain.clone().autodiff();
+        for channels in CHANNELS {
+            for n in SIZES {
+                let id = format!("{backend}/C{channels}");
+
+                let grid = Grid::new(n, n, &plain, Precision::F32.dtype()).unwrap();
+                let bspline = BSpline::new(&grid);
+                let (f, phi) = (image(&grid, channels, 0.0), deformation(&grid));
+                let mut group = c.benchmark_group("warp");
+                group.sample_size(10).warm_up_time(Duration::from_secs(1));
+                group.bench_with_input(BenchmarkId::new(&id, n), &n, |b, _| {
+                    b.iter(|| {
+                        let out = bspline.warp(f.clone(), phi.clone());
+                        sync(&plain);
+                        out
+                    })
+                });
+                group.finish();
+
+                let grid = grid.with_device(&autodiff);
+                let energy = PathEnergy::new(&grid, EnergyParams::rgb(), channels).unwrap();
+                let frames = Tensor::cat(vec![image(&grid, channels, 0.0), image(&grid, channels, 1.0)], 0);
+                let phi = deformation(&grid);
+                let a = energy.anisotropy().compute(image(&grid, 3, 1.0));
+                let mut group = c.benchmark_group("step");
+                group.sample_size(10).warm_up_time(Duration::from_secs(1));
+                group.bench_with_input(BenchmarkId::new(&id, n), &n, |b, _| {
+                    b.iter(|| {
+                        let f = frames.clone().require_grad();
+                        let phi = phi.clone().require_grad();
+                        let value = energy.value(f.clone(), phi.clone(), a.clone());
+                        let grads = value.total.backward();
+                        let out = (f.grad(&grads), phi.grad(&grads));
+                        sync(&autodiff);
+                        out
+                    })
+                });
+                group.finish();
+            }
+        }
+    }
+}
+
+criterion_group!(energy, benches);
+criterion_main!(energy);

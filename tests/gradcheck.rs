@@ -14,7 +14,7 @@
 
 mod common;
 
-use burn::tensor::{DType, Device, Tensor};
+use burn::tensor::{DType, Tensor};
 use common::{Rng, assert_close, device, values};
 use deepmorph::deformation::{Jacobian, admissible_each};
 use deepmorph::energy::data::{data_term, data_term_gradient};
@@ -97,7 +97,6 @@ fn check(what: &str, got: &[f64], want: &[f64], (rel, abs): (f64, f64)) {
 }
 
 struct Setup {
-    device: Device,
     grid: Grid,
     rng: Rng,
 }
@@ -107,7 +106,6 @@ impl Setup {
         let device = device(backend, Precision::F64, true);
         let grid = Grid::new(H, W, &device, F64).unwrap();
         Self {
-            device,
             grid,
             rng: Rng(seed),
         }
