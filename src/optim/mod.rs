@@ -1,0 +1,3 @@
+//! The iPALM solver of one level (SPEC §6, the paper's Algorithm 1).
+
+pub mod prox;
