@@ -35,6 +35,13 @@ pub enum Error {
         expected: &'static str,
     },
 
+    /// A NaN or infinity appeared where the solver needs finite numbers.
+    #[error("non-finite value: {what}")]
+    NonFinite {
+        /// Where (level, sweep, step) and which quantity.
+        what: String,
+    },
+
     /// Tensor arguments whose shapes do not fit together.
     #[error("{op}: {detail}")]
     Shape {

@@ -27,6 +27,7 @@ pub mod deformation;
 pub mod energy;
 pub mod error;
 pub mod grid;
+pub mod layout;
 pub mod optim;
 pub mod params;
 pub mod resample;

@@ -5,12 +5,13 @@
 mod common;
 
 use burn::tensor::{DType, Tensor};
-use common::{Golden, assert_golden, device, grid_for, tensor, values};
-use deepmorph::Backend;
-use deepmorph::Precision;
+use common::{Golden, assert_close, assert_golden, device, grid_for, tensor, values};
+use deepmorph::layout::FeatureLayout;
+use deepmorph::optim::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport};
 use deepmorph::optim::prox::{LinearisedData, linearise};
 use deepmorph::sobel::Sobel;
 use deepmorph::warp::BSpline;
+use deepmorph::{Backend, EnergyParams, Precision};
 
 const F32: DType = DType::F32;
 
@@ -48,4 +49,156 @@ fn prox(backend: Backend) {
     }
 }
 
-on_each_backend!(prox);
+/// The README's loose tolerance for cases that run the backtracking.
+fn assert_loose(what: &str, got: &[f64], want: &[f64]) {
+    assert_close(what, got, want, 1e-3, 1e-7);
+}
+
+/// A golden sweep case opened on one backend (autodiff on: the steps take gradients).
+struct SweepCase {
+    golden: Golden,
+    device: burn::tensor::Device,
+}
+
+impl SweepCase {
+    fn open(name: &str, backend: Backend) -> Self {
+        Self {
+            golden: Golden::load(name),
+            device: device(backend, Precision::F32, true),
+        }
+    }
+
+    /// The `[N, ...]` input split into its `N` entries, each `[1, ...]`.
+    fn frames(&self, name: &str) -> Vec<Tensor<4>> {
+        let t: Tensor<4> = tensor(self.golden.input(name), &self.device, F32);
+        let n = t.dims()[0];
+        (0..n).map(|i| t.clone().narrow(0, i, 1)).collect()
+    }
+
+    fn params(&self) -> EnergyParams {
+        let p = |name: &str| self.golden.param(name);
+        EnergyParams {
+            lambda: p("lambda"),
+            mu: p("mu"),
+            delta: p("delta"),
+            sigma: p("sigma"),
+            rho: p("rho"),
+            xi1: p("xi1"),
+            xi2: p("xi2"),
+        }
+    }
+
+    fn want(&self, name: &str) -> &[f64] {
+        &self.golden.output(name).data
+    }
+
+    fn check(&self, name: &str, got: &[f64]) {
+        assert_loose(&format!("{}.{name}", self.golden.name), got, self.want(name));
+    }
+
+    fn check_counts(&self, name: &str, got: &[usize]) {
+        let got: Vec<f64> = got.iter().map(|&n| n as f64).collect();
+        assert_eq!(got, self.want(name), "{}.{name}", self.golden.name);
+    }
+}
+
+fn interior(state: &LevelState) -> Vec<f64> {
+    let k = state.steps();
+    values(Tensor::cat(state.f[1..k].to_vec(), 0))
+}
+
+fn lipschitz_f(report: &SweepReport) -> Vec<f64> {
+    report.features.iter().flat_map(|s| s.lipschitz.clone()).collect()
+}
+
+fn trials_f(report: &SweepReport) -> Vec<usize> {
+    report.features.iter().flat_map(|s| s.trials.clone()).collect()
+}
+
+fn ipalm_sweep_rgb(backend: Backend) {
+    let case = SweepCase::open("ipalm_sweep_rgb_K3_10x13", backend);
+    let grid = grid_for(&case.golden.input("f").shape, &case.device, F32);
+    let l_f = case.golden.input("L_f").data.iter().map(|&l| vec![l]).collect();
+    let mut state = LevelState::new(
+        case.frames("f"),
+        case.frames("phi"),
+        case.golden.input("L_phi").data.clone(),
+        l_f,
+    )
+    .unwrap();
+    state.f_prev = case.frames("f_prev");
+    state.phi_prev = case.frames("phi_prev");
+
+    let solver = |beta: f64| {
+        let config = IpalmConfig {
+            beta,
+            safeguard: false, // the golden sweeps run the paper's algorithm
+            ..IpalmConfig::default()
+        };
+        Ipalm::new(&grid, case.params(), FeatureLayout::rgb(), config).unwrap()
+    };
+    let first = solver(case.golden.param("beta_sweep1"));
+    case.check("E_initial", &values(first.energy(&state).total));
+
+    for (sweep, ipalm) in [(1, first), (2, solver(case.golden.param("beta_sweep2")))] {
+        let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
+        let a = Tensor::cat(report.anisotropy.clone(), 0);
+        case.check(&format!("a_{sweep}"), &values(a.clone()));
+        case.check(&format!("phi_{sweep}"), &values(state.deformations()));
+        case.check(&format!("f_interior_{sweep}"), &interior(&state));
+        let l_phi: Vec<f64> = report.deformation.iter().map(|s| s.lipschitz).collect();
+        case.check(&format!("L_phi_{sweep}"), &l_phi);
+        case.check(&format!("L_f_{sweep}"), &lipschitz_f(&report));
+        let trials: Vec<usize> = report.deformation.iter().map(|s| s.trials).collect();
+        case.check_counts(&format!("phi_trials_{sweep}"), &trials);
+        let inadmissible: Vec<usize> =
+            report.deformation.iter().map(|s| s.inadmissible_trials).collect();
+        case.check_counts(&format!("phi_inadmissible_trials_{sweep}"), &inadmissible);
+        case.check_counts(&format!("f_trials_{sweep}"), &trials_f(&report));
+        case.check(&format!("E_{sweep}"), &values(ipalm.energy(&state).total));
+        let with_sweep_a = ipalm
+            .path_energy()
+            .value(state.frames(), state.deformations(), a);
+        case.check(&format!("E_sweep_a_{sweep}"), &values(with_sweep_a.total));
+    }
+}
+
+fn ipalm_sweep_deep(backend: Backend) {
+    let case = SweepCase::open("ipalm_sweep_deep_K3_9x11", backend);
+    let grid = grid_for(&case.golden.input("f").shape, &case.device, F32);
+    let c_tot = case.golden.param("C_tot") as usize;
+    let layout = FeatureLayout::deep(case.golden.param("eta"), c_tot - 3).unwrap();
+    let l_f = case.golden.input("L_f").data.chunks(2).map(<[f64]>::to_vec).collect();
+    let mut state = LevelState::new(
+        case.frames("f"),
+        case.frames("phi"),
+        case.golden.input("L_phi").data.clone(),
+        l_f,
+    )
+    .unwrap();
+    state.f_prev = case.frames("f_prev");
+    state.phi_prev = case.frames("phi_prev");
+    let config = IpalmConfig {
+        beta: case.golden.param("beta"),
+        safeguard: false,
+        ..IpalmConfig::default()
+    };
+    let ipalm = Ipalm::new(&grid, case.params(), layout, config).unwrap();
+
+    let report = ipalm.sweep(&mut state, SweepKind::FeaturesOnly).unwrap();
+    case.check("f_interior_1", &interior(&state));
+    case.check("L_f_1", &lipschitz_f(&report));
+    case.check_counts("f_trials_1", &trials_f(&report));
+
+    let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
+    case.check("a_2", &values(Tensor::cat(report.anisotropy.clone(), 0)));
+    case.check("phi_2", &values(state.deformations()));
+    let l_phi: Vec<f64> = report.deformation.iter().map(|s| s.lipschitz).collect();
+    case.check("L_phi_2", &l_phi);
+    case.check("f_interior_2", &interior(&state));
+    case.check("L_f_2", &lipschitz_f(&report));
+    case.check_counts("f_trials_2", &trials_f(&report));
+    case.check("E_2", &values(ipalm.energy(&state).total));
+}
+
+on_each_backend!(prox, ipalm_sweep_rgb, ipalm_sweep_deep);
