@@ -28,6 +28,7 @@ pub mod energy;
 pub mod error;
 pub mod grid;
 pub mod layout;
+pub mod multilevel;
 pub mod optim;
 pub mod params;
 pub mod resample;

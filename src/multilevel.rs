@@ -1,0 +1,327 @@
+//! The coarse-to-fine driver (SPEC §7) for the RGB model: builds the pyramid, initialises
+//! the coarsest level, prolongates deformations and images, and runs `J` iPALM sweeps per
+//! level, reporting to an [`Observer`] after every sweep.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor};
+
+use crate::error::{Error, Result};
+use crate::grid::Grid;
+use crate::layout::FeatureLayout;
+use crate::optim::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport, initial_lipschitz};
+use crate::params::EnergyParams;
+use crate::resample::{Resize, prolongate_deformation};
+
+/// How each level's stored Lipschitz estimates start.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum InitialLipschitz {
+    /// `s²/(H·W)` per SPEC §6 (the default).
+    Scaled,
+    /// One constant for every estimate (the golden multilevel case uses 1).
+    Constant(f64),
+}
+
+/// Settings of a multilevel morph (SPEC §7, §9).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct MultilevelConfig {
+    /// Number of steps `K` (frames `0..=K`). Default 15.
+    pub steps: usize,
+    /// Pyramid levels. Default 5. The working size must be divisible by `2^(levels−1)` and
+    /// the coarsest level at least 4 × 4.
+    pub levels: usize,
+    /// Sweeps `J` per level. Default 250.
+    pub sweeps: usize,
+    /// The energy's parameters.
+    pub params: EnergyParams,
+    /// The solver's settings.
+    pub ipalm: IpalmConfig,
+    /// Start of the Lipschitz estimates on each level.
+    pub initial_lipschitz: InitialLipschitz,
+}
+
+impl Default for MultilevelConfig {
+    fn default() -> Self {
+        Self {
+            steps: 15,
+            levels: 5,
+            sweeps: 250,
+            params: EnergyParams::rgb(),
+            ipalm: IpalmConfig::default(),
+            initial_lipschitz: InitialLipschitz::Scaled,
+        }
+    }
+}
+
+fn invalid(name: &'static str, value: impl ToString, expected: &'static str) -> Error {
+    Error::InvalidParameter {
+        name,
+        value: value.to_string(),
+        expected,
+    }
+}
+
+impl MultilevelConfig {
+    /// Checks every parameter.
+    ///
+    /// # Errors
+    ///
+    /// [`Error::InvalidParameter`] naming the first bad value.
+    pub fn validate(&self) -> Result<()> {
+        if self.steps < 1 {
+            return Err(invalid("K", self.steps, "at least 1"));
+        }
+        if self.levels < 1 {
+            return Err(invalid("levels", self.levels, "at least 1"));
+        }
+        if let InitialLipschitz::Constant(l) = self.initial_lipschitz {
+            crate::params::positive("initial L", l)?;
+        }
+        self.params.validate()?;
+        self.ipalm.validate()
+    }
+
+    /// The grid sizes of the levels, coarse to fine, for a working size `height × width`.
+    ///
+    /// # Errors
+    ///
+    /// If the size is not divisible by `2^(levels−1)` or the coarsest level is below 4 × 4.
+    pub fn level_sizes(&self, height: usize, width: usize) -> Result<Vec<(usize, usize)>> {
+        let factor = 1usize << (self.levels - 1);
+        if height % factor != 0 || width % factor != 0 || height / factor < 4 || width / factor < 4
+        {
+            return Err(Error::Shape {
+                op: "multilevel pyramid",
+                detail: format!(
+                    "{height}x{width} with {} levels: both sides must be multiples of {factor} \
+                     and at least {}",
+                    self.levels,
+                    4 * factor
+                ),
+            });
+        }
+        Ok((0..self.levels)
+            .map(|l| {
+                let f = 1usize << (self.levels - 1 - l);
+                (height / f, width / f)
+            })
+            .collect())
+    }
+}
+
+/// What an observer sees after each sweep.
+#[derive(Debug)]
+pub struct SweepEvent<'a> {
+    /// Level index, 0 = coarsest.
+    pub level: usize,
+    /// Number of levels.
+    pub levels: usize,
+    /// The level's grid.
+    pub grid: &'a Grid,
+    /// Sweep index on this level, 1-based (0 = the initial state).
+    pub sweep: usize,
+    /// Sweeps per level.
+    pub sweeps: usize,
+    /// `E` after the sweep (with `a_k` recomputed, SPEC §10).
+    pub energy: f64,
+    /// `Σ_k R_k` of that evaluation (times `K`, as in `E`).
+    pub regularizer: f64,
+    /// `Σ_k D_k / δ` of that evaluation (times `K`, as in `E`).
+    pub data: f64,
+    /// What the sweep did (`None` for the initial state).
+    pub report: Option<&'a SweepReport>,
+    /// The state after the sweep.
+    pub state: &'a LevelState,
+    /// Seconds since the morph started.
+    pub seconds: f64,
+}
+
+/// Receives progress from the driver; everything outside the numerics (progress bars,
+/// energy logs, frame capture) is an observer.
+pub trait Observer {
+    /// After the initial state of a level (sweep 0) and after every sweep.
+    fn sweep(&mut self, event: &SweepEvent<'_>);
+}
+
+/// An observer that does nothing.
+impl Observer for () {
+    fn sweep(&mut self, _: &SweepEvent<'_>) {}
+}
+
+/// Why the driver stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Termination {
+    /// Every level ran its `J` sweeps.
+    Completed,
+    /// The interrupt flag was raised; the state is the one after the last full sweep.
+    Interrupted {
+        /// Level at which it stopped.
+        level: usize,
+        /// Sweeps done on that level.
+        sweep: usize,
+    },
+}
+
+/// The result of a morph.
+#[derive(Debug)]
+pub struct Morph {
+    /// The last level's grid.
+    pub grid: Grid,
+    /// The last level's state: `f_0..f_K`, `φ_1..φ_K`.
+    pub state: LevelState,
+    /// `a_1..a_K` of the final frames, `[K, H, W]`.
+    pub anisotropy: Tensor<3>,
+    /// Why it stopped.
+    pub termination: Termination,
+}
+
+/// The multilevel driver of the RGB model.
+#[derive(Clone, Debug)]
+pub struct Multilevel {
+    config: MultilevelConfig,
+}
+
+impl Multilevel {
+    /// A driver with validated settings.
+    ///
+    /// # Errors
+    ///
+    /// If a setting is out of range.
+    pub fn new(config: MultilevelConfig) -> Result<Self> {
+        config.validate()?;
+        Ok(Self { config })
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &MultilevelConfig {
+        &self.config
+    }
+
+    /// Morphs `u_a` into `u_b` (RGB in `[0, 1]`, `[1, 3, H, W]`, on `device`, which must have
+    /// autodiff enabled). Stops after the current sweep when `interrupt` is raised.
+    ///
+    /// # Errors
+    ///
+    /// Mismatched or unsuitable sizes, or a non-finite value in the optimisation (naming the
+    /// level and sweep).
+    pub fn run(
+        &self,
+        device: &Device,
+        u_a: Tensor<4>,
+        u_b: Tensor<4>,
+        observer: &mut dyn Observer,
+        interrupt: &AtomicBool,
+    ) -> Result<Morph> {
+        let cfg = &self.config;
+        let [_, ca, h, w] = u_a.dims();
+        if u_a.dims() != u_b.dims() || ca != 3 {
+            return Err(Error::Shape {
+                op: "morph inputs",
+                detail: format!(
+                    "A is {:?} and B is {:?}: expected two [1, 3, H, W] RGB images of one size",
+                    u_a.dims(),
+                    u_b.dims()
+                ),
+            });
+        }
+        let sizes = cfg.level_sizes(h, w)?;
+        let dtype = u_a.dtype();
+        let full = Grid::new(h, w, device, dtype)?;
+        let layout = FeatureLayout::rgb();
+        let started = Instant::now();
+        let k = cfg.steps;
+
+        let mut previous: Option<(Grid, LevelState)> = None;
+        for (level, &(lh, lw)) in sizes.iter().enumerate() {
+            let grid = Grid::new(lh, lw, device, dtype)?;
+            let resize = Resize::new(&full, &grid);
+            let (f_a, f_b) = (resize.apply(u_a.clone()), resize.apply(u_b.clone()));
+            let mut state = match previous.take() {
+                None => LevelState::initial(&grid, &layout, f_a, f_b, k)?,
+                Some((coarse, coarse_state)) => {
+                    let up = Resize::new(&coarse, &grid);
+                    let mut f = Vec::with_capacity(k + 1);
+                    f.push(f_a);
+                    f.extend(coarse_state.f[1..k].iter().map(|x| up.apply(x.clone())));
+                    f.push(f_b);
+                    let phi = prolongate_deformation(&coarse, &grid, coarse_state.deformations());
+                    let phi = (0..k).map(|i| phi.clone().narrow(0, i, 1)).collect();
+                    let (l_phi, l_f) = initial_lipschitz(&grid, &layout, k);
+                    LevelState::new(f, phi, l_phi, l_f)?
+                }
+            };
+            if let InitialLipschitz::Constant(l) = cfg.initial_lipschitz {
+                state.l_phi.iter_mut().for_each(|x| *x = l);
+                state.l_f.iter_mut().flatten().for_each(|x| *x = l);
+            }
+            let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
+
+            let mut report_sweep = |sweep: usize, report: Option<&SweepReport>, state: &LevelState| {
+                let value = ipalm.energy(state);
+                let numbers = Tensor::cat(
+                    vec![
+                        value.total,
+                        value.regularizer.sum().mul_scalar(k as f64),
+                        value.data.sum().mul_scalar(k as f64 / cfg.params.delta),
+                    ],
+                    0,
+                )
+                .into_data()
+                .try_into_vec_as::<f64>()
+                .expect("float tensors convert to f64");
+                if !numbers[0].is_finite() {
+                    return Err(Error::NonFinite {
+                        what: format!("energy {} at level {level}, sweep {sweep}", numbers[0]),
+                    });
+                }
+                observer.sweep(&SweepEvent {
+                    level,
+                    levels: sizes.len(),
+                    grid: &grid,
+                    sweep,
+                    sweeps: cfg.sweeps,
+                    energy: numbers[0],
+                    regularizer: numbers[1],
+                    data: numbers[2],
+                    report,
+                    state,
+                    seconds: started.elapsed().as_secs_f64(),
+                });
+                Ok(())
+            };
+            report_sweep(0, None, &state)?;
+            for sweep in 1..=cfg.sweeps {
+                let report = ipalm
+                    .sweep(&mut state, SweepKind::Joint)
+                    .map_err(|e| match e {
+                        Error::NonFinite { what } => Error::NonFinite {
+                            what: format!("level {level}, sweep {sweep}: {what}"),
+                        },
+                        other => other,
+                    })?;
+                report_sweep(sweep, Some(&report), &state)?;
+                if interrupt.load(Ordering::Relaxed) {
+                    let anisotropy = ipalm.anisotropies(&state);
+                    return Ok(Morph {
+                        grid,
+                        state,
+                        anisotropy,
+                        termination: Termination::Interrupted { level, sweep },
+                    });
+                }
+            }
+            if level + 1 == sizes.len() {
+                let anisotropy = ipalm.anisotropies(&state);
+                return Ok(Morph {
+                    grid,
+                    state,
+                    anisotropy,
+                    termination: Termination::Completed,
+                });
+            }
+            previous = Some((grid, state));
+        }
+        unreachable!("the last level returns")
+    }
+}
