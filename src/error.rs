@@ -35,6 +35,24 @@ pub enum Error {
         expected: &'static str,
     },
 
+    /// A file could not be read or written.
+    #[error("{}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What the operating system said.
+        source: std::io::Error,
+    },
+
+    /// An image file could not be decoded or encoded.
+    #[error("{}: {source}", path.display())]
+    Image {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What the decoder said.
+        source: image::ImageError,
+    },
+
     /// A NaN or infinity appeared where the solver needs finite numbers.
     #[error("non-finite value: {what}")]
     NonFinite {

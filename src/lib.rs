@@ -24,12 +24,16 @@
 
 pub mod backend;
 pub mod deformation;
+pub mod demo;
 pub mod energy;
 pub mod error;
 pub mod grid;
+pub mod io;
 pub mod layout;
 pub mod multilevel;
+pub mod observe;
 pub mod optim;
+pub mod output;
 pub mod params;
 pub mod resample;
 pub mod separable;

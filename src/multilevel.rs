@@ -149,6 +149,20 @@ impl Observer for () {
     fn sweep(&mut self, _: &SweepEvent<'_>) {}
 }
 
+impl<T: Observer + ?Sized> Observer for &mut T {
+    fn sweep(&mut self, event: &SweepEvent<'_>) {
+        (**self).sweep(event);
+    }
+}
+
+/// Two observers, called in order.
+impl<A: Observer, B: Observer> Observer for (A, B) {
+    fn sweep(&mut self, event: &SweepEvent<'_>) {
+        self.0.sweep(event);
+        self.1.sweep(event);
+    }
+}
+
 /// Why the driver stopped.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Termination {

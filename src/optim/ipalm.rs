@@ -427,7 +427,8 @@ impl Ipalm {
                 scalar(smooth(phi) + d.mul_scalar(k_steps / p.delta))
             };
             let current = local(phi.clone());
-            while local(phi_new.clone()) > current {
+            // Written so that a NaN energy counts as a rise.
+            while !(local(phi_new.clone()) <= current) {
                 if step.safeguard_doublings == self.config.safeguard_max {
                     step.dropped = true;
                     phi_new = phi.clone();

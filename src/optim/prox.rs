@@ -93,14 +93,17 @@ impl LinearisedData {
     /// - `y`: `[1, 2, H, W]`
     /// - output: `[1, 2, H, W]`
     pub fn prox(&self, y: Tensor<4>, l: f64) -> Tensor<4> {
-        let k = self.kappa;
-        let m00 = self.a00.clone().mul_scalar(k).add_scalar(l);
-        let m01 = self.a01.clone().mul_scalar(k);
-        let m11 = self.a11.clone().mul_scalar(k).add_scalar(l);
-        let b = y.mul_scalar(l) + self.v.clone().mul_scalar(k);
+        // Divided through by L, the system is (I + t Σ Λ Λᵀ) x = y + t Σ Λ (Λᵀ φ̃ − r) with
+        // t = κ / L: the same solution, but no L² that overflows float32 when backtracking
+        // has doubled L many times.
+        let t = self.kappa / l;
+        let m00 = self.a00.clone().mul_scalar(t).add_scalar(1.0);
+        let m01 = self.a01.clone().mul_scalar(t);
+        let m11 = self.a11.clone().mul_scalar(t).add_scalar(1.0);
+        let b = y + self.v.clone().mul_scalar(t);
         let b0 = b.clone().narrow(1, 0, 1);
         let b1 = b.narrow(1, 1, 1);
-        // L > 0 and Σ Λ Λᵀ ⪰ 0, so the determinant is at least L².
+        // Σ Λ Λᵀ ⪰ 0, so the determinant is at least 1.
         let det = m00.clone() * m11.clone() - m01.clone().square();
         let x0 = (m11 * b0.clone() - m01.clone() * b1.clone()) / det.clone();
         let x1 = (m00 * b1 - m01 * b0) / det;

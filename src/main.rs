@@ -1,0 +1,382 @@
+//! `deepmorph`: morph one image into another along a time-discrete geodesic.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use deepmorph::io::{RgbImage, write_atomically, write_png};
+use deepmorph::multilevel::{Multilevel, MultilevelConfig, Termination};
+use deepmorph::observe::{EnergyLog, Progress, Verbosity};
+use deepmorph::optim::ipalm::IpalmConfig;
+use deepmorph::output::{
+    contact_sheet, output_names, save_deformations, write_frames, write_gif,
+};
+use deepmorph::{Backend, EnergyParams, Grid, Precision};
+use serde::Serialize;
+
+#[derive(Parser)]
+#[command(name = "deepmorph", version, about = "Image morphing as a time-discrete geodesic in the metamorphosis model")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Morph image A into image B.
+    Morph {
+        /// The first image (any common format; alpha dropped, grey expanded to RGB).
+        a: PathBuf,
+        /// The last image (resized to A's working size if it differs).
+        b: PathBuf,
+        /// Working size WxH (each a multiple of 2^(levels-1)); default: A's size scaled to --max-side.
+        #[arg(long, value_parser = parse_size, conflicts_with = "max_side")]
+        size: Option<(usize, usize)>,
+        /// Longest side of the working size when --size is not given.
+        #[arg(long, default_value_t = 256)]
+        max_side: usize,
+        #[command(flatten)]
+        run: RunArgs,
+    },
+    /// Morph a built-in synthetic pair (shapes that move, turn and change colour); about a minute on 2 CPU cores.
+    Demo {
+        /// Side of the square demo images.
+        #[arg(long, default_value_t = 96)]
+        size: usize,
+        #[command(flatten)]
+        run: RunArgs,
+    },
+}
+
+#[derive(Args, Clone)]
+struct RunArgs {
+    /// Output directory (created if needed).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Number of steps K (K+1 frames).
+    #[arg(short = 'K', long = "steps", default_value_t = 15)]
+    steps: usize,
+    /// Pyramid levels.
+    #[arg(long, default_value_t = 5)]
+    levels: usize,
+    /// iPALM sweeps J per level.
+    #[arg(long, default_value_t = 250)]
+    sweeps: usize,
+    /// Weight 1/delta of the data term.
+    #[arg(long, default_value_t = 1.0)]
+    delta: f64,
+    /// Volume term weight lambda of W.
+    #[arg(long, default_value_t = 0.1)]
+    lambda: f64,
+    /// Strain term weight mu of W.
+    #[arg(long, default_value_t = 0.025)]
+    mu: f64,
+    /// Edge sensitivity xi1 of the anisotropy.
+    #[arg(long, default_value_t = 1000.0)]
+    xi1: f64,
+    /// Lower bound xi2 of the anisotropy.
+    #[arg(long, default_value_t = 1e-6)]
+    xi2: f64,
+    /// Pre-smoothing sigma of the anisotropy, pixels.
+    #[arg(long, default_value_t = 0.5)]
+    sigma: f64,
+    /// Gradient smoothing rho of the anisotropy, pixels.
+    #[arg(long, default_value_t = 2.0)]
+    rho: f64,
+    /// Inertial extrapolation beta of iPALM, in [0, 1).
+    #[arg(long, default_value_t = std::f64::consts::FRAC_1_SQRT_2)]
+    beta: f64,
+    /// Run the paper's plain iPALM, without the energy safeguard of SPEC §6.
+    #[arg(long)]
+    no_safeguard: bool,
+    /// Model: only the RGB model is available in this build.
+    #[arg(long, default_value = "rgb", value_parser = ["rgb"])]
+    model: String,
+    /// Compute backend (flex, ndarray or wgpu, as compiled in).
+    #[arg(long)]
+    backend: Option<Backend>,
+    /// The GIF plays forward and back.
+    #[arg(long)]
+    pingpong: bool,
+    /// Print nothing but errors.
+    #[arg(short, long, conflicts_with = "verbose")]
+    quiet: bool,
+    /// One log line per sweep.
+    #[arg(short, long)]
+    verbose: bool,
+}
+
+fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
+    let (w, h) = s
+        .split_once(['x', 'X'])
+        .ok_or_else(|| format!("`{s}` is not WxH (e.g. 256x192)"))?;
+    let parse = |v: &str| v.trim().parse::<usize>().map_err(|_| format!("`{s}` is not WxH (e.g. 256x192)"));
+    Ok((parse(h)?, parse(w)?))
+}
+
+/// Everything needed to reproduce a run, written as `config.json`.
+#[derive(Serialize)]
+struct RunRecord<'a> {
+    program: &'static str,
+    version: &'static str,
+    command: &'a str,
+    inputs: Vec<String>,
+    working_size: [usize; 2],
+    model: &'a str,
+    backend: String,
+    precision: &'static str,
+    steps: usize,
+    levels: usize,
+    sweeps: usize,
+    delta: f64,
+    lambda: f64,
+    mu: f64,
+    sigma: f64,
+    rho: f64,
+    xi1: f64,
+    xi2: f64,
+    beta: f64,
+    safeguard: bool,
+    pingpong: bool,
+    termination: String,
+    seconds: f64,
+}
+
+fn main() {
+    if let Err(e) = run(Cli::parse()) {
+        eprintln!("Error: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    let (inputs, pair, args, command) = match cli.command {
+        Command::Morph {
+            a,
+            b,
+            size,
+            max_side,
+            run,
+        } => {
+            let image_a = RgbImage::load(&a)?;
+            let image_b = RgbImage::load(&b)?;
+            let (h, w) = working_size(&image_a, size, max_side, run.levels)?;
+            let resize = |img: &RgbImage, name: &str| {
+                if (img.height(), img.width()) != (h, w) {
+                    if !run.quiet {
+                        eprintln!(
+                            "{name}: {}x{} resized to the working size {w}x{h}",
+                            img.width(),
+                            img.height()
+                        );
+                    }
+                    img.resized(h, w)
+                } else {
+                    img.clone()
+                }
+            };
+            let pair = (resize(&image_a, "A"), resize(&image_b, "B"));
+            (vec![a, b], pair, run, "morph")
+        }
+        Command::Demo { size, run } => {
+            let factor = 1usize << run.levels.saturating_sub(1).min(20);
+            if size % factor != 0 || size < 4 * factor {
+                bail!(
+                    "--size {size} does not fit --levels {}: it must be a multiple of {factor} and at least {}",
+                    run.levels,
+                    4 * factor
+                );
+            }
+            (Vec::new(), deepmorph::demo::demo_pair(size), run, "demo")
+        }
+    };
+    morph(command, &inputs, pair, &args)
+}
+
+/// The working size: `--size`, or A's size scaled so its longest side is at most `max_side`,
+/// rounded to multiples of `2^(levels−1)`.
+fn working_size(
+    a: &RgbImage,
+    size: Option<(usize, usize)>,
+    max_side: usize,
+    levels: usize,
+) -> Result<(usize, usize)> {
+    if levels == 0 || levels > 12 {
+        bail!("--levels {levels} is out of range: must be in 1..=12");
+    }
+    let factor = 1usize << (levels - 1);
+    if let Some((h, w)) = size {
+        if h % factor != 0 || w % factor != 0 || h < 4 * factor || w < 4 * factor {
+            bail!(
+                "--size {w}x{h} does not fit --levels {levels}: both sides must be multiples of {factor} and at least {}",
+                4 * factor
+            );
+        }
+        return Ok((h, w));
+    }
+    if max_side < 4 * factor {
+        bail!("--max-side {max_side} is too small for --levels {levels}: must be at least {}", 4 * factor);
+    }
+    let (h, w) = (a.height() as f64, a.width() as f64);
+    let scale = (max_side as f64 / h.max(w)).min(1.0);
+    let round = |v: f64| (((v * scale) / factor as f64).round() as usize).max(4) * factor;
+    Ok((round(h), round(w)))
+}
+
+fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: &RunArgs) -> Result<()> {
+    let backend = match args.backend {
+        Some(b) => b,
+        None => Backend::default_compiled().context("no backend compiled into this build")?,
+    };
+    let params = EnergyParams {
+        lambda: args.lambda,
+        mu: args.mu,
+        delta: args.delta,
+        sigma: args.sigma,
+        rho: args.rho,
+        xi1: args.xi1,
+        xi2: args.xi2,
+    };
+    let config = MultilevelConfig {
+        steps: args.steps,
+        levels: args.levels,
+        sweeps: args.sweeps,
+        params,
+        ipalm: IpalmConfig {
+            beta: args.beta,
+            safeguard: !args.no_safeguard,
+            ..IpalmConfig::default()
+        },
+        ..MultilevelConfig::default()
+    };
+    let driver = Multilevel::new(config).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let out = prepare_output(&args.output, inputs, args.steps)?;
+
+    let precision = Precision::F32;
+    let device = backend.device_for(precision)?.autodiff();
+    let grid = Grid::new(a.height(), a.width(), &device, precision.dtype())?;
+    let (u_a, u_b) = (a.to_tensor(&grid)?, b.to_tensor(&grid)?);
+
+    let interrupt = Arc::new(AtomicBool::new(false));
+    {
+        let flag = Arc::clone(&interrupt);
+        ctrlc::set_handler(move || {
+            if flag.swap(true, Ordering::SeqCst) {
+                std::process::exit(130); // a second Ctrl-C does not wait
+            }
+            eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (Ctrl-C again to abort)");
+        })
+        .context("installing the Ctrl-C handler")?;
+    }
+    let verbosity = if args.quiet {
+        Verbosity::Quiet
+    } else if args.verbose {
+        Verbosity::Verbose
+    } else {
+        Verbosity::Normal
+    };
+    if !args.quiet {
+        eprintln!(
+            "{command}: {}x{} (WxH), K = {}, {} levels x {} sweeps, {} backend",
+            a.width(),
+            a.height(),
+            args.steps,
+            args.levels,
+            args.sweeps,
+            backend
+        );
+    }
+    let started = Instant::now();
+    let mut progress = Progress::new(verbosity);
+    let mut log = EnergyLog::default();
+    let mut observers = (&mut progress, &mut log);
+    let morph = driver.run(&device, u_a, u_b, &mut observers, &interrupt)?;
+    drop(progress);
+    let seconds = started.elapsed().as_secs_f64();
+
+    let frames = morph
+        .state
+        .f
+        .iter()
+        .map(|f| RgbImage::from_tensor(f.clone()))
+        .collect::<deepmorph::Result<Vec<_>>>()?;
+    write_frames(&out, &frames)?;
+    write_gif(&out.join("morph.gif"), &frames, args.pingpong, 3.0)?;
+    let k = args.steps;
+    let displacement = morph.state.deformations() - morph.grid.identity(k);
+    let sheet = contact_sheet(&frames, morph.anisotropy.clone(), displacement)?;
+    write_png(&out.join("sheet.png"), &sheet)?;
+    save_deformations(&out, morph.state.deformations())?;
+    let csv = log.to_csv();
+    write_atomically(&out.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
+    let termination = match morph.termination {
+        Termination::Completed => "completed".to_string(),
+        Termination::Interrupted { level, sweep } => format!("interrupted at level {level}, sweep {sweep}"),
+    };
+    let record = RunRecord {
+        program: "deepmorph",
+        version: env!("CARGO_PKG_VERSION"),
+        command,
+        inputs: inputs.iter().map(|p| p.display().to_string()).collect(),
+        working_size: [a.height(), a.width()],
+        model: &args.model,
+        backend: backend.to_string(),
+        precision: "f32",
+        steps: k,
+        levels: args.levels,
+        sweeps: args.sweeps,
+        delta: args.delta,
+        lambda: args.lambda,
+        mu: args.mu,
+        sigma: args.sigma,
+        rho: args.rho,
+        xi1: args.xi1,
+        xi2: args.xi2,
+        beta: args.beta,
+        safeguard: !args.no_safeguard,
+        pingpong: args.pingpong,
+        termination: termination.clone(),
+        seconds,
+    };
+    let json = serde_json::to_vec_pretty(&record)?;
+    write_atomically(&out.join("config.json"), |w| w.write_all(&json))?;
+    if !args.quiet {
+        let last = log.records.last().map_or(f64::NAN, |r| r.energy);
+        eprintln!(
+            "{termination} in {seconds:.1} s, final E = {last:.6e}; wrote {} frames, morph.gif, sheet.png, deformations, energy.csv, config.json to {}",
+            k + 1,
+            out.display()
+        );
+    }
+    if matches!(morph.termination, Termination::Interrupted { .. }) {
+        std::process::exit(130);
+    }
+    Ok(())
+}
+
+/// Creates the output directory and refuses one whose outputs would overwrite an input.
+fn prepare_output(out: &Path, inputs: &[PathBuf], k: usize) -> Result<PathBuf> {
+    std::fs::create_dir_all(out)
+        .with_context(|| format!("cannot create the output directory {}", out.display()))?;
+    let out_dir = out
+        .canonicalize()
+        .with_context(|| format!("cannot resolve {}", out.display()))?;
+    let names = output_names(k);
+    for input in inputs {
+        let Ok(input_path) = input.canonicalize() else {
+            continue;
+        };
+        let name = input_path.file_name().map(|n| n.to_string_lossy().into_owned());
+        if input_path.parent() == Some(out_dir.as_path()) && name.as_ref().is_some_and(|n| names.contains(n)) {
+            bail!(
+                "the output directory {} would overwrite the input {}: choose another -o",
+                out.display(),
+                input.display()
+            );
+        }
+    }
+    Ok(out_dir)
+}
