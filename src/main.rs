@@ -56,15 +56,15 @@ struct RunArgs {
     /// Output directory (created if needed).
     #[arg(short, long)]
     output: PathBuf,
-    /// Number of steps K (K+1 frames).
-    #[arg(short = 'K', long = "steps", default_value_t = 15)]
-    steps: usize,
-    /// Pyramid levels.
-    #[arg(long, default_value_t = 5)]
-    levels: usize,
-    /// iPALM sweeps J per level.
-    #[arg(long, default_value_t = 250)]
-    sweeps: usize,
+    /// Number of steps K (K+1 frames) [default: 15; demo: 10].
+    #[arg(short = 'K', long = "steps")]
+    steps: Option<usize>,
+    /// Pyramid levels [default: 5; demo: 3].
+    #[arg(long)]
+    levels: Option<usize>,
+    /// iPALM sweeps J per level [default: 250; demo: 60].
+    #[arg(long)]
+    sweeps: Option<usize>,
     /// Weight 1/delta of the data term.
     #[arg(long, default_value_t = 1.0)]
     delta: f64,
@@ -107,6 +107,33 @@ struct RunArgs {
     /// One log line per sweep.
     #[arg(short, long)]
     verbose: bool,
+}
+
+/// The paper's K, levels and J (SPEC §9).
+const PAPER: (usize, usize, usize) = (15, 5, 250);
+/// The demo's K, levels and J: about a minute on 2 CPU cores.
+const DEMO: (usize, usize, usize) = (10, 3, 60);
+
+impl RunArgs {
+    /// Fills the unset K, levels and J from `defaults`.
+    fn with_defaults(mut self, (steps, levels, sweeps): (usize, usize, usize)) -> Self {
+        self.steps.get_or_insert(steps);
+        self.levels.get_or_insert(levels);
+        self.sweeps.get_or_insert(sweeps);
+        self
+    }
+
+    fn steps(&self) -> usize {
+        self.steps.expect("resolved by with_defaults")
+    }
+
+    fn levels(&self) -> usize {
+        self.levels.expect("resolved by with_defaults")
+    }
+
+    fn sweeps(&self) -> usize {
+        self.sweeps.expect("resolved by with_defaults")
+    }
 }
 
 fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
@@ -161,9 +188,10 @@ fn run(cli: Cli) -> Result<()> {
             max_side,
             run,
         } => {
+            let run = run.with_defaults(PAPER);
             let image_a = RgbImage::load(&a)?;
             let image_b = RgbImage::load(&b)?;
-            let (h, w) = working_size(&image_a, size, max_side, run.levels)?;
+            let (h, w) = working_size(&image_a, size, max_side, run.levels())?;
             let resize = |img: &RgbImage, name: &str| {
                 if (img.height(), img.width()) != (h, w) {
                     if !run.quiet {
@@ -182,14 +210,8 @@ fn run(cli: Cli) -> Result<()> {
             (vec![a, b], pair, run, "morph")
         }
         Command::Demo { size, run } => {
-            let factor = 1usize << run.levels.saturating_sub(1).min(20);
-            if size % factor != 0 || size < 4 * factor {
-                bail!(
-                    "--size {size} does not fit --levels {}: it must be a multiple of {factor} and at least {}",
-                    run.levels,
-                    4 * factor
-                );
-            }
+            let run = run.with_defaults(DEMO);
+            working_size_fits(size, size, run.levels())?;
             (Vec::new(), deepmorph::demo::demo_pair(size), run, "demo")
         }
     };
@@ -204,17 +226,10 @@ fn working_size(
     max_side: usize,
     levels: usize,
 ) -> Result<(usize, usize)> {
-    if levels == 0 || levels > 12 {
-        bail!("--levels {levels} is out of range: must be in 1..=12");
-    }
+    check_levels(levels)?;
     let factor = 1usize << (levels - 1);
     if let Some((h, w)) = size {
-        if h % factor != 0 || w % factor != 0 || h < 4 * factor || w < 4 * factor {
-            bail!(
-                "--size {w}x{h} does not fit --levels {levels}: both sides must be multiples of {factor} and at least {}",
-                4 * factor
-            );
-        }
+        working_size_fits(h, w, levels)?;
         return Ok((h, w));
     }
     if max_side < 4 * factor {
@@ -224,6 +239,26 @@ fn working_size(
     let scale = (max_side as f64 / h.max(w)).min(1.0);
     let round = |v: f64| (((v * scale) / factor as f64).round() as usize).max(4) * factor;
     Ok((round(h), round(w)))
+}
+
+fn check_levels(levels: usize) -> Result<()> {
+    if levels == 0 || levels > 12 {
+        bail!("--levels {levels} is out of range: must be in 1..=12");
+    }
+    Ok(())
+}
+
+/// Checks that an explicit working size suits the pyramid.
+fn working_size_fits(h: usize, w: usize, levels: usize) -> Result<()> {
+    check_levels(levels)?;
+    let factor = 1usize << (levels - 1);
+    if h % factor != 0 || w % factor != 0 || h < 4 * factor || w < 4 * factor {
+        bail!(
+            "--size {w}x{h} does not fit --levels {levels}: both sides must be multiples of {factor} and at least {}",
+            4 * factor
+        );
+    }
+    Ok(())
 }
 
 fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: &RunArgs) -> Result<()> {
@@ -241,9 +276,9 @@ fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: 
         xi2: args.xi2,
     };
     let config = MultilevelConfig {
-        steps: args.steps,
-        levels: args.levels,
-        sweeps: args.sweeps,
+        steps: args.steps(),
+        levels: args.levels(),
+        sweeps: args.sweeps(),
         params,
         ipalm: IpalmConfig {
             beta: args.beta,
@@ -253,7 +288,7 @@ fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: 
         ..MultilevelConfig::default()
     };
     let driver = Multilevel::new(config).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let out = prepare_output(&args.output, inputs, args.steps)?;
+    let out = prepare_output(&args.output, inputs, args.steps())?;
 
     let precision = Precision::F32;
     let device = backend.device_for(precision)?.autodiff();
@@ -283,9 +318,9 @@ fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: 
             "{command}: {}x{} (WxH), K = {}, {} levels x {} sweeps, {} backend",
             a.width(),
             a.height(),
-            args.steps,
-            args.levels,
-            args.sweeps,
+            args.steps(),
+            args.levels(),
+            args.sweeps(),
             backend
         );
     }
@@ -305,7 +340,7 @@ fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: 
         .collect::<deepmorph::Result<Vec<_>>>()?;
     write_frames(&out, &frames)?;
     write_gif(&out.join("morph.gif"), &frames, args.pingpong, 3.0)?;
-    let k = args.steps;
+    let k = args.steps();
     let displacement = morph.state.deformations() - morph.grid.identity(k);
     let sheet = contact_sheet(&frames, morph.anisotropy.clone(), displacement)?;
     write_png(&out.join("sheet.png"), &sheet)?;
@@ -326,8 +361,8 @@ fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: 
         backend: backend.to_string(),
         precision: "f32",
         steps: k,
-        levels: args.levels,
-        sweeps: args.sweeps,
+        levels: args.levels(),
+        sweeps: args.sweeps(),
         delta: args.delta,
         lambda: args.lambda,
         mu: args.mu,
