@@ -66,28 +66,28 @@ struct RunArgs {
     #[arg(long)]
     sweeps: Option<usize>,
     /// Weight 1/delta of the data term.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
     delta: f64,
     /// Volume term weight lambda of W.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = 0.1, allow_negative_numbers = true)]
     lambda: f64,
     /// Strain term weight mu of W.
-    #[arg(long, default_value_t = 0.025)]
+    #[arg(long, default_value_t = 0.025, allow_negative_numbers = true)]
     mu: f64,
     /// Edge sensitivity xi1 of the anisotropy.
-    #[arg(long, default_value_t = 1000.0)]
+    #[arg(long, default_value_t = 1000.0, allow_negative_numbers = true)]
     xi1: f64,
     /// Lower bound xi2 of the anisotropy.
-    #[arg(long, default_value_t = 1e-6)]
+    #[arg(long, default_value_t = 1e-6, allow_negative_numbers = true)]
     xi2: f64,
     /// Pre-smoothing sigma of the anisotropy, pixels.
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = 0.5, allow_negative_numbers = true)]
     sigma: f64,
     /// Gradient smoothing rho of the anisotropy, pixels.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 2.0, allow_negative_numbers = true)]
     rho: f64,
     /// Inertial extrapolation beta of iPALM, in [0, 1).
-    #[arg(long, default_value_t = std::f64::consts::FRAC_1_SQRT_2)]
+    #[arg(long, default_value_t = std::f64::consts::FRAC_1_SQRT_2, allow_negative_numbers = true)]
     beta: f64,
     /// Run the paper's plain iPALM, without the energy safeguard of SPEC §6.
     #[arg(long)]

@@ -1,0 +1,158 @@
+//! The `deepmorph` binary end to end on tiny inputs: outputs written and reloadable, inputs of
+//! two sizes resized, and every kind of bad input rejected with one clear line, a non-zero
+//! exit and no panic.
+
+use std::path::{Path, PathBuf};
+
+use assert_cmd::Command;
+use deepmorph::io::{RgbImage, write_png};
+use deepmorph::output::load_deformations;
+
+/// A fresh, empty scratch directory for one test.
+fn scratch(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("deepmorph-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn deepmorph() -> Command {
+    Command::cargo_bin("deepmorph").unwrap()
+}
+
+/// A smooth test image of `h × w` with a bright spot at `(cy, cx)` (fractions).
+fn write_image(path: &Path, h: usize, w: usize, cy: f64, cx: f64) {
+    let n = h * w;
+    let mut data = vec![0.0f32; 3 * n];
+    for i in 0..h {
+        for j in 0..w {
+            let (y, x) = (i as f64 / h as f64 - cy, j as f64 / w as f64 - cx);
+            let v = (-(x * x + y * y) / 0.02).exp() as f32;
+            for c in 0..3 {
+                data[c * n + i * w + j] = 0.2 + 0.6 * v * (1.0 - 0.2 * c as f32);
+            }
+        }
+    }
+    write_png(path, &RgbImage::new(h, w, data).unwrap().to_rgb8()).unwrap();
+}
+
+const TINY: [&str; 8] = ["-K", "3", "--levels", "2", "--sweeps", "3", "--backend", "flex"];
+
+/// Runs a command that must fail; returns its stderr.
+fn fails(cmd: &mut Command) -> String {
+    let out = cmd.output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(!out.status.success(), "expected failure, got success; stderr: {stderr}");
+    assert!(!stderr.contains("panicked"), "panic instead of an error: {stderr}");
+    stderr
+}
+
+#[test]
+fn demo_writes_every_output() {
+    let dir = scratch("demo");
+    let out = dir.join("out");
+    deepmorph()
+        .args(["demo", "--size", "32", "-q", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .assert()
+        .success();
+    for name in deepmorph::output::output_names(3) {
+        assert!(out.join(&name).is_file(), "missing {name}");
+    }
+    let frame = RgbImage::load(&out.join("frame_03.png")).unwrap();
+    assert_eq!((frame.height(), frame.width()), (32, 32));
+    let (shape, phi) = load_deformations(&out).unwrap();
+    assert_eq!(shape, [3, 2, 32, 32]);
+    assert!(phi.iter().all(|v| v.is_finite()));
+    let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
+    assert_eq!(csv.lines().count(), 1 + 2 * 4, "header + (1 + 3 sweeps) per level");
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["steps"], 3);
+    assert_eq!(config["termination"], "completed");
+    assert!(!std::fs::read_dir(&out).unwrap().any(|e| {
+        e.unwrap().file_name().to_string_lossy().contains(".tmp-")
+    }));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn morph_resizes_inputs_of_two_sizes() {
+    let dir = scratch("morph");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 40, 48, 0.5, 0.4);
+    write_image(&b, 30, 36, 0.5, 0.6);
+    let out = dir.join("out");
+    let assert = deepmorph()
+        .arg("morph")
+        .args([&a, &b])
+        .args(["--max-side", "32", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .assert()
+        .success();
+    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).into_owned();
+    // 48x40 scaled to a longest side of 32 is 32x26.7, rounded to multiples of 2.
+    assert!(stderr.contains("A: 48x40 resized to the working size 32x26"), "{stderr}");
+    assert!(stderr.contains("B: 36x30 resized to the working size 32x26"), "{stderr}");
+    let frame = RgbImage::load(&out.join("frame_00.png")).unwrap();
+    assert_eq!((frame.height(), frame.width()), (26, 32));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn bad_inputs_fail_with_a_clear_message() {
+    let dir = scratch("bad");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 16, 16, 0.5, 0.4);
+    write_image(&b, 16, 16, 0.5, 0.6);
+    let out = dir.join("out");
+    let morph = |extra: &[&str]| {
+        let mut cmd = deepmorph();
+        cmd.arg("morph").args([&a, &b]).arg("-o").arg(&out).args(extra);
+        if !extra.contains(&"-K") {
+            cmd.args(&TINY[..2]);
+        }
+        cmd.args(&TINY[2..]);
+        cmd
+    };
+
+    let missing = dir.join("missing.png");
+    let err = fails(deepmorph().arg("morph").args([&missing, &b]).arg("-o").arg(&out));
+    assert!(err.contains("missing.png"), "{err}");
+
+    let garbage = dir.join("garbage.png");
+    std::fs::write(&garbage, b"not an image at all").unwrap();
+    let err = fails(deepmorph().arg("morph").args([&garbage, &b]).arg("-o").arg(&out));
+    assert!(err.contains("garbage.png"), "{err}");
+
+    let err = fails(&mut morph(&["-K", "0"]));
+    assert!(err.contains("K = 0"), "{err}");
+    let err = fails(&mut morph(&["--delta", "-1"]));
+    assert!(err.contains("delta = -1"), "{err}");
+    let err = fails(&mut morph(&["--mu", "NaN"]));
+    assert!(err.contains("mu = NaN"), "{err}");
+    let err = fails(&mut morph(&["--beta", "1.5"]));
+    assert!(err.contains("beta = 1.5"), "{err}");
+    let err = fails(&mut morph(&["--size", "33x32"]));
+    assert!(err.contains("multiples of 2"), "{err}");
+    let err = fails(&mut morph(&["--backend", "cuda"]));
+    assert!(err.contains("cuda"), "{err}");
+
+    // An input that would be overwritten by an output: refused, and left intact.
+    let frame0 = dir.join("frame_00.png");
+    std::fs::copy(&a, &frame0).unwrap();
+    let before = std::fs::read(&frame0).unwrap();
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&frame0, &b])
+            .arg("-o")
+            .arg(&dir)
+            .args(TINY),
+    );
+    assert!(err.contains("would overwrite"), "{err}");
+    assert_eq!(std::fs::read(&frame0).unwrap(), before);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
