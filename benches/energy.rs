@@ -52,7 +52,11 @@ fn deformation(grid: &Grid) -> Tensor<4> {
             let (x, y) = (i as f64 / (n - 1) as f64, j as f64 / (n - 1) as f64);
             let bump = (pi * x).sin() * (pi * y).sin();
             let id = if axis == 0 { i } else { j } as f64;
-            let swirl = if axis == 0 { (2.0 * pi * y).sin() } else { (2.0 * pi * x).cos() };
+            let swirl = if axis == 0 {
+                (2.0 * pi * y).sin()
+            } else {
+                (2.0 * pi * x).cos()
+            };
             id + amplitude * bump * bump * swirl
         })
         .collect();
@@ -89,7 +93,10 @@ fn benches(c: &mut Criterion) {
 
                 let grid = grid.with_device(&autodiff);
                 let energy = PathEnergy::new(&grid, EnergyParams::rgb(), channels).unwrap();
-                let frames = Tensor::cat(vec![image(&grid, channels, 0.0), image(&grid, channels, 1.0)], 0);
+                let frames = Tensor::cat(
+                    vec![image(&grid, channels, 0.0), image(&grid, channels, 1.0)],
+                    0,
+                );
                 let phi = deformation(&grid);
                 let a = energy.anisotropy().compute(image(&grid, 3, 1.0));
                 let mut group = c.benchmark_group("step");

@@ -74,7 +74,10 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let anisotropy = energy.anisotropy().compute(f.clone().narrow(0, 1, k));
     let value = energy.value(f.clone(), phi.clone(), anisotropy);
     let grads = value.total.backward();
-    let grad_f = f.grad(&grads).ok_or("no gradient for f")?.narrow(0, 1, k - 1);
+    let grad_f = f
+        .grad(&grads)
+        .ok_or("no gradient for f")?
+        .narrow(0, 1, k - 1);
     let grad_phi = phi.grad(&grads).ok_or("no gradient for phi")?;
     let norm = |t: Tensor<4>| -> f64 { t.square().sum().sqrt().into_scalar::<f64>() };
     let (norm_f, norm_phi) = (norm(grad_f), norm(grad_phi));
@@ -85,12 +88,17 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
             .try_into_vec_as::<f64>()
             .expect("float tensor")
     };
-    println!("deepmorph: path energy of a moving disc, {size}x{size}, K = {k}, {backend} backend, float32");
+    println!(
+        "deepmorph: path energy of a moving disc, {size}x{size}, K = {k}, {backend} backend, float32"
+    );
     println!("initial path: f_k linear between A and B, phi_k = Id (SPEC §7)");
     println!("  E           = {:.6e}", host(value.total)[0]);
     println!("  R_k         = {:?}", host(value.regularizer));
     println!("  D_k         = {:?}", host(value.data));
-    println!("  |dE/df|     = {norm_f:.6e}   (free frames f_1..f_{})", k - 1);
+    println!(
+        "  |dE/df|     = {norm_f:.6e}   (free frames f_1..f_{})",
+        k - 1
+    );
     println!("  |dE/dphi|   = {norm_phi:.6e}");
     println!("value + gradient in {:.1} ms", elapsed.as_secs_f64() * 1e3);
     Ok(())

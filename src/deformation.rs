@@ -102,8 +102,15 @@ pub fn admissible_each(grid: &Grid, phi: Tensor<4>) -> Vec<bool> {
     let phi = phi.detach();
     let [n, _, h, w] = phi.dims();
     let boundary_move = (phi.clone() - grid.identity(n)).abs() * boundary_indicator(grid, n);
-    let boundary_max = boundary_move.reshape([n, 2 * h * w]).max_dim(1).reshape([n]);
-    let min_det = jacobian(phi).det().reshape([n, h * w]).min_dim(1).reshape([n]);
+    let boundary_max = boundary_move
+        .reshape([n, 2 * h * w])
+        .max_dim(1)
+        .reshape([n]);
+    let min_det = jacobian(phi)
+        .det()
+        .reshape([n, h * w])
+        .min_dim(1)
+        .reshape([n]);
     let values: Vec<f64> = Tensor::cat(vec![boundary_max, min_det], 0)
         .into_data()
         .try_into_vec_as::<f64>()

@@ -9,9 +9,17 @@ enum Shape {
     /// Centre (row, column) and radius, as fractions of the side.
     Disc { centre: [f64; 2], radius: f64 },
     /// Centre, half-side and rotation (radians).
-    Square { centre: [f64; 2], half: f64, angle: f64 },
+    Square {
+        centre: [f64; 2],
+        half: f64,
+        angle: f64,
+    },
     /// Centre, circumradius and rotation (radians).
-    Triangle { centre: [f64; 2], radius: f64, angle: f64 },
+    Triangle {
+        centre: [f64; 2],
+        radius: f64,
+        angle: f64,
+    },
 }
 
 impl Shape {
@@ -23,14 +31,20 @@ impl Shape {
             [c * dy + s * dx, -s * dy + c * dx]
         };
         match self {
-            Shape::Disc { centre, radius } => {
-                (p[0] - centre[0]).hypot(p[1] - centre[1]) - radius
-            }
-            Shape::Square { centre, half, angle } => {
+            Shape::Disc { centre, radius } => (p[0] - centre[0]).hypot(p[1] - centre[1]) - radius,
+            Shape::Square {
+                centre,
+                half,
+                angle,
+            } => {
                 let q = rotate(centre, angle);
                 q[0].abs().max(q[1].abs()) - half
             }
-            Shape::Triangle { centre, radius, angle } => {
+            Shape::Triangle {
+                centre,
+                radius,
+                angle,
+            } => {
                 let q = rotate(centre, angle);
                 // The largest signed distance to the three edge lines (inradius r/2).
                 (0..3)
@@ -76,21 +90,55 @@ pub fn demo_pair(size: usize) -> (RgbImage, RgbImage) {
     let a = draw(
         size,
         &[
-            (Shape::Disc { centre: [0.3, 0.28], radius: 0.14 }, [0.85, 0.15, 0.12]),
-            (Shape::Square { centre: [0.32, 0.7], half: 0.11, angle: 0.0 }, [0.15, 0.3, 0.8]),
-            (Shape::Triangle { centre: [0.72, 0.5], radius: 0.17, angle: 0.0 }, [0.2, 0.65, 0.25]),
+            (
+                Shape::Disc {
+                    centre: [0.3, 0.28],
+                    radius: 0.14,
+                },
+                [0.85, 0.15, 0.12],
+            ),
+            (
+                Shape::Square {
+                    centre: [0.32, 0.7],
+                    half: 0.11,
+                    angle: 0.0,
+                },
+                [0.15, 0.3, 0.8],
+            ),
+            (
+                Shape::Triangle {
+                    centre: [0.72, 0.5],
+                    radius: 0.17,
+                    angle: 0.0,
+                },
+                [0.2, 0.65, 0.25],
+            ),
         ],
     );
     let b = draw(
         size,
         &[
-            (Shape::Disc { centre: [0.3, 0.42], radius: 0.14 }, [0.85, 0.15, 0.12]),
             (
-                Shape::Square { centre: [0.42, 0.64], half: 0.11, angle: 30f64.to_radians() },
+                Shape::Disc {
+                    centre: [0.3, 0.42],
+                    radius: 0.14,
+                },
+                [0.85, 0.15, 0.12],
+            ),
+            (
+                Shape::Square {
+                    centre: [0.42, 0.64],
+                    half: 0.11,
+                    angle: 30f64.to_radians(),
+                },
                 [0.15, 0.3, 0.8],
             ),
             (
-                Shape::Triangle { centre: [0.65, 0.45], radius: 0.17, angle: 20f64.to_radians() },
+                Shape::Triangle {
+                    centre: [0.65, 0.45],
+                    radius: 0.17,
+                    angle: 20f64.to_radians(),
+                },
                 [0.95, 0.55, 0.1],
             ),
         ],

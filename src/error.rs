@@ -7,7 +7,9 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum Error {
     /// A backend was asked for that this build does not contain.
-    #[error("the {backend} backend is not compiled into this build; rebuild with `--features {feature}`")]
+    #[error(
+        "the {backend} backend is not compiled into this build; rebuild with `--features {feature}`"
+    )]
     BackendNotCompiled {
         /// Backend name as the CLI spells it.
         backend: &'static str,

@@ -107,7 +107,12 @@ impl RgbImage {
         if (height, width) == (self.height, self.width) {
             return self.clone();
         }
-        let resized = image::imageops::resize(&self.to_rgb32f(), width as u32, height as u32, FilterType::Lanczos3);
+        let resized = image::imageops::resize(
+            &self.to_rgb32f(),
+            width as u32,
+            height as u32,
+            FilterType::Lanczos3,
+        );
         Self::from_dynamic(&image::DynamicImage::ImageRgb32F(resized))
     }
 
@@ -200,7 +205,10 @@ pub fn host_values<const D: usize>(t: Tensor<D>) -> Result<Vec<f64>> {
 /// # Errors
 ///
 /// [`Error::Io`] naming the file.
-pub fn write_atomically(path: &Path, write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>) -> Result<()> {
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<()> {
     let io_error = |source| Error::Io {
         path: path.to_path_buf(),
         source,
@@ -229,11 +237,14 @@ pub fn write_atomically(path: &Path, write: impl FnOnce(&mut dyn Write) -> std::
 /// [`Error::Io`] or [`Error::Image`] naming the file.
 pub fn write_png(path: &Path, img: &image::RgbImage) -> Result<()> {
     let mut bytes = Vec::new();
-    img.write_to(&mut std::io::Cursor::new(&mut bytes), image::ImageFormat::Png)
-        .map_err(|e| Error::Image {
-            path: path.to_path_buf(),
-            source: e,
-        })?;
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| Error::Image {
+        path: path.to_path_buf(),
+        source: e,
+    })?;
     write_atomically(path, |w| w.write_all(&bytes))
 }
 
@@ -259,7 +270,9 @@ mod tests {
         let back = RgbImage::load(&path).unwrap();
         assert_eq!(back.data()[1], back.data()[6 + 1]);
         assert_eq!(back.data()[1], back.data()[12 + 1]);
-        let err = RgbImage::load(&dir.join("missing.png")).unwrap_err().to_string();
+        let err = RgbImage::load(&dir.join("missing.png"))
+            .unwrap_err()
+            .to_string();
         assert!(err.contains("missing.png"), "{err}");
         fs::remove_dir_all(&dir).unwrap();
     }

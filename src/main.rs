@@ -11,14 +11,16 @@ use deepmorph::io::{RgbImage, write_atomically, write_png};
 use deepmorph::multilevel::{Multilevel, MultilevelConfig, Termination};
 use deepmorph::observe::{EnergyLog, Progress, Verbosity};
 use deepmorph::optim::ipalm::IpalmConfig;
-use deepmorph::output::{
-    contact_sheet, output_names, save_deformations, write_frames, write_gif,
-};
+use deepmorph::output::{contact_sheet, output_names, save_deformations, write_frames, write_gif};
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 use serde::Serialize;
 
 #[derive(Parser)]
-#[command(name = "deepmorph", version, about = "Image morphing as a time-discrete geodesic in the metamorphosis model")]
+#[command(
+    name = "deepmorph",
+    version,
+    about = "Image morphing as a time-discrete geodesic in the metamorphosis model"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -140,7 +142,11 @@ fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
     let (w, h) = s
         .split_once(['x', 'X'])
         .ok_or_else(|| format!("`{s}` is not WxH (e.g. 256x192)"))?;
-    let parse = |v: &str| v.trim().parse::<usize>().map_err(|_| format!("`{s}` is not WxH (e.g. 256x192)"));
+    let parse = |v: &str| {
+        v.trim()
+            .parse::<usize>()
+            .map_err(|_| format!("`{s}` is not WxH (e.g. 256x192)"))
+    };
     Ok((parse(h)?, parse(w)?))
 }
 
@@ -233,7 +239,10 @@ fn working_size(
         return Ok((h, w));
     }
     if max_side < 4 * factor {
-        bail!("--max-side {max_side} is too small for --levels {levels}: must be at least {}", 4 * factor);
+        bail!(
+            "--max-side {max_side} is too small for --levels {levels}: must be at least {}",
+            4 * factor
+        );
     }
     let (h, w) = (a.height() as f64, a.width() as f64);
     let scale = (max_side as f64 / h.max(w)).min(1.0);
@@ -261,7 +270,12 @@ fn working_size_fits(h: usize, w: usize, levels: usize) -> Result<()> {
     Ok(())
 }
 
-fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: &RunArgs) -> Result<()> {
+fn morph(
+    command: &str,
+    inputs: &[PathBuf],
+    (a, b): (RgbImage, RgbImage),
+    args: &RunArgs,
+) -> Result<()> {
     let backend = match args.backend {
         Some(b) => b,
         None => Backend::default_compiled().context("no backend compiled into this build")?,
@@ -349,7 +363,9 @@ fn morph(command: &str, inputs: &[PathBuf], (a, b): (RgbImage, RgbImage), args: 
     write_atomically(&out.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
     let termination = match morph.termination {
         Termination::Completed => "completed".to_string(),
-        Termination::Interrupted { level, sweep } => format!("interrupted at level {level}, sweep {sweep}"),
+        Termination::Interrupted { level, sweep } => {
+            format!("interrupted at level {level}, sweep {sweep}")
+        }
     };
     let record = RunRecord {
         program: "deepmorph",
@@ -404,8 +420,12 @@ fn prepare_output(out: &Path, inputs: &[PathBuf], k: usize) -> Result<PathBuf> {
         let Ok(input_path) = input.canonicalize() else {
             continue;
         };
-        let name = input_path.file_name().map(|n| n.to_string_lossy().into_owned());
-        if input_path.parent() == Some(out_dir.as_path()) && name.as_ref().is_some_and(|n| names.contains(n)) {
+        let name = input_path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned());
+        if input_path.parent() == Some(out_dir.as_path())
+            && name.as_ref().is_some_and(|n| names.contains(n))
+        {
             bail!(
                 "the output directory {} would overwrite the input {}: choose another -o",
                 out.display(),

@@ -10,7 +10,9 @@ use burn::tensor::{Device, Tensor};
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::layout::FeatureLayout;
-use crate::optim::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport, initial_lipschitz};
+use crate::optim::ipalm::{
+    Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport, initial_lipschitz,
+};
 use crate::params::EnergyParams;
 use crate::resample::{Resize, prolongate_deformation};
 
@@ -271,39 +273,40 @@ impl Multilevel {
             }
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
 
-            let mut report_sweep = |sweep: usize, report: Option<&SweepReport>, state: &LevelState| {
-                let value = ipalm.energy(state);
-                let numbers = Tensor::cat(
-                    vec![
-                        value.total,
-                        value.regularizer.sum().mul_scalar(k as f64),
-                        value.data.sum().mul_scalar(k as f64 / cfg.params.delta),
-                    ],
-                    0,
-                )
-                .into_data()
-                .try_into_vec_as::<f64>()
-                .expect("float tensors convert to f64");
-                if !numbers[0].is_finite() {
-                    return Err(Error::NonFinite {
-                        what: format!("energy {} at level {level}, sweep {sweep}", numbers[0]),
+            let mut report_sweep =
+                |sweep: usize, report: Option<&SweepReport>, state: &LevelState| {
+                    let value = ipalm.energy(state);
+                    let numbers = Tensor::cat(
+                        vec![
+                            value.total,
+                            value.regularizer.sum().mul_scalar(k as f64),
+                            value.data.sum().mul_scalar(k as f64 / cfg.params.delta),
+                        ],
+                        0,
+                    )
+                    .into_data()
+                    .try_into_vec_as::<f64>()
+                    .expect("float tensors convert to f64");
+                    if !numbers[0].is_finite() {
+                        return Err(Error::NonFinite {
+                            what: format!("energy {} at level {level}, sweep {sweep}", numbers[0]),
+                        });
+                    }
+                    observer.sweep(&SweepEvent {
+                        level,
+                        levels: sizes.len(),
+                        grid: &grid,
+                        sweep,
+                        sweeps: cfg.sweeps,
+                        energy: numbers[0],
+                        regularizer: numbers[1],
+                        data: numbers[2],
+                        report,
+                        state,
+                        seconds: started.elapsed().as_secs_f64(),
                     });
-                }
-                observer.sweep(&SweepEvent {
-                    level,
-                    levels: sizes.len(),
-                    grid: &grid,
-                    sweep,
-                    sweeps: cfg.sweeps,
-                    energy: numbers[0],
-                    regularizer: numbers[1],
-                    data: numbers[2],
-                    report,
-                    state,
-                    seconds: started.elapsed().as_secs_f64(),
-                });
-                Ok(())
-            };
+                    Ok(())
+                };
             report_sweep(0, None, &state)?;
             for sweep in 1..=cfg.sweeps {
                 let report = ipalm

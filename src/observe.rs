@@ -75,7 +75,10 @@ impl Observer for EnergyLog {
         let (lipschitz_phi, lipschitz_f) = match e.report {
             Some(r) => (
                 r.deformation.iter().map(|s| s.lipschitz).collect(),
-                r.features.iter().flat_map(|s| s.lipschitz.clone()).collect(),
+                r.features
+                    .iter()
+                    .flat_map(|s| s.lipschitz.clone())
+                    .collect(),
             ),
             None => (Vec::new(), Vec::new()),
         };

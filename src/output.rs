@@ -84,7 +84,11 @@ pub fn write_gif(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64)
 /// red, down = yellow-green, left = cyan, up = violet), brightness ∝ magnitude, saturated.
 pub fn displacement_colour(d_row: f64, d_col: f64, max: f64) -> [u8; 3] {
     let magnitude = (d_row * d_row + d_col * d_col).sqrt();
-    let value = if max > 0.0 { (magnitude / max).min(1.0) } else { 0.0 };
+    let value = if max > 0.0 {
+        (magnitude / max).min(1.0)
+    } else {
+        0.0
+    };
     let hue = d_row.atan2(d_col).rem_euclid(std::f64::consts::TAU) / std::f64::consts::TAU;
     hsv_to_rgb(hue, 1.0, value)
 }
@@ -232,7 +236,10 @@ pub fn save_deformations(dir: &Path, phi: Tensor<4>) -> Result<()> {
         units: "pixels".into(),
         data: DEFORMATIONS_DATA.into(),
     };
-    let bytes: Vec<u8> = values.iter().flat_map(|&v| (v as f32).to_le_bytes()).collect();
+    let bytes: Vec<u8> = values
+        .iter()
+        .flat_map(|&v| (v as f32).to_le_bytes())
+        .collect();
     write_atomically(&dir.join(DEFORMATIONS_DATA), |w| w.write_all(&bytes))?;
     let json = serde_json::to_vec_pretty(&header).expect("header serialises");
     write_atomically(&dir.join(DEFORMATIONS_HEADER), |w| w.write_all(&json))

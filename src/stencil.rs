@@ -67,7 +67,10 @@ impl Matrix {
     /// A square operator from a centred stencil `taps[t]` at offset `t − radius`, reading
     /// mirrored samples: `(M x)(i) = Σ_t taps[t] · x(m(i + t − radius))`.
     pub fn from_stencil(n: usize, taps: &[f64]) -> Self {
-        assert!(taps.len() % 2 == 1, "a centred stencil has an odd number of taps");
+        assert!(
+            taps.len() % 2 == 1,
+            "a centred stencil has an odd number of taps"
+        );
         let radius = (taps.len() / 2) as i64;
         let mut m = Self::zeros(n, n);
         for i in 0..n {
@@ -195,7 +198,10 @@ pub fn sobel_smoothing(n: usize) -> Matrix {
 /// Bilinear resampling with aligned corners from `n_in` to `n_out` samples (SPEC §7):
 /// output sample `i` reads the input at `i · (n_in − 1)/(n_out − 1)`.
 pub fn bilinear_resize(n_in: usize, n_out: usize) -> Matrix {
-    assert!(n_in >= 2 && n_out >= 2, "bilinear_resize needs at least 2 samples");
+    assert!(
+        n_in >= 2 && n_out >= 2,
+        "bilinear_resize needs at least 2 samples"
+    );
     let mut m = Matrix::zeros(n_out, n_in);
     let scale = (n_in - 1) as f64 / (n_out - 1) as f64;
     for i in 0..n_out {

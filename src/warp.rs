@@ -215,7 +215,12 @@ impl BSpline {
 
     fn stencil(&self, phi: Tensor<4>) -> Stencil {
         let [n, two, ho, wo] = phi.dims();
-        assert_eq!(two, 2, "a deformation has 2 components, got shape {:?}", phi.dims());
+        assert_eq!(
+            two,
+            2,
+            "a deformation has 2 components, got shape {:?}",
+            phi.dims()
+        );
         let (h, w) = (self.grid.height(), self.grid.width());
         let p = phi.reshape([n, 2, ho * wo]);
         let p0 = p.clone().narrow(1, 0, 1);
@@ -224,7 +229,10 @@ impl BSpline {
         // dtype) so the indicator has the dtype of `phi`.
         let inside = |q: &Tensor<3>, hi: f64| {
             let q = q.clone().detach();
-            let outside = q.clone().lower_elem(0.0).bool_or(q.clone().greater_elem(hi));
+            let outside = q
+                .clone()
+                .lower_elem(0.0)
+                .bool_or(q.clone().greater_elem(hi));
             q.ones_like().mask_fill(outside, 0.0)
         };
         let inside0 = inside(&p0, (h - 1) as f64);

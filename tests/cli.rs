@@ -36,14 +36,29 @@ fn write_image(path: &Path, h: usize, w: usize, cy: f64, cx: f64) {
     write_png(path, &RgbImage::new(h, w, data).unwrap().to_rgb8()).unwrap();
 }
 
-const TINY: [&str; 8] = ["-K", "3", "--levels", "2", "--sweeps", "3", "--backend", "flex"];
+const TINY: [&str; 8] = [
+    "-K",
+    "3",
+    "--levels",
+    "2",
+    "--sweeps",
+    "3",
+    "--backend",
+    "flex",
+];
 
 /// Runs a command that must fail; returns its stderr.
 fn fails(cmd: &mut Command) -> String {
     let out = cmd.output().unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(!out.status.success(), "expected failure, got success; stderr: {stderr}");
-    assert!(!stderr.contains("panicked"), "panic instead of an error: {stderr}");
+    assert!(
+        !out.status.success(),
+        "expected failure, got success; stderr: {stderr}"
+    );
+    assert!(
+        !stderr.contains("panicked"),
+        "panic instead of an error: {stderr}"
+    );
     stderr
 }
 
@@ -66,14 +81,20 @@ fn demo_writes_every_output() {
     assert_eq!(shape, [3, 2, 32, 32]);
     assert!(phi.iter().all(|v| v.is_finite()));
     let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
-    assert_eq!(csv.lines().count(), 1 + 2 * 4, "header + (1 + 3 sweeps) per level");
+    assert_eq!(
+        csv.lines().count(),
+        1 + 2 * 4,
+        "header + (1 + 3 sweeps) per level"
+    );
     let config: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
     assert_eq!(config["steps"], 3);
     assert_eq!(config["termination"], "completed");
-    assert!(!std::fs::read_dir(&out).unwrap().any(|e| {
-        e.unwrap().file_name().to_string_lossy().contains(".tmp-")
-    }));
+    assert!(
+        !std::fs::read_dir(&out)
+            .unwrap()
+            .any(|e| { e.unwrap().file_name().to_string_lossy().contains(".tmp-") })
+    );
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -94,8 +115,14 @@ fn morph_resizes_inputs_of_two_sizes() {
         .success();
     let stderr = String::from_utf8_lossy(&assert.get_output().stderr).into_owned();
     // 48x40 scaled to a longest side of 32 is 32x26.7, rounded to multiples of 2.
-    assert!(stderr.contains("A: 48x40 resized to the working size 32x26"), "{stderr}");
-    assert!(stderr.contains("B: 36x30 resized to the working size 32x26"), "{stderr}");
+    assert!(
+        stderr.contains("A: 48x40 resized to the working size 32x26"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("B: 36x30 resized to the working size 32x26"),
+        "{stderr}"
+    );
     let frame = RgbImage::load(&out.join("frame_00.png")).unwrap();
     assert_eq!((frame.height(), frame.width()), (26, 32));
     std::fs::remove_dir_all(&dir).unwrap();
@@ -110,7 +137,11 @@ fn bad_inputs_fail_with_a_clear_message() {
     let out = dir.join("out");
     let morph = |extra: &[&str]| {
         let mut cmd = deepmorph();
-        cmd.arg("morph").args([&a, &b]).arg("-o").arg(&out).args(extra);
+        cmd.arg("morph")
+            .args([&a, &b])
+            .arg("-o")
+            .arg(&out)
+            .args(extra);
         if !extra.contains(&"-K") {
             cmd.args(&TINY[..2]);
         }
@@ -119,12 +150,24 @@ fn bad_inputs_fail_with_a_clear_message() {
     };
 
     let missing = dir.join("missing.png");
-    let err = fails(deepmorph().arg("morph").args([&missing, &b]).arg("-o").arg(&out));
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&missing, &b])
+            .arg("-o")
+            .arg(&out),
+    );
     assert!(err.contains("missing.png"), "{err}");
 
     let garbage = dir.join("garbage.png");
     std::fs::write(&garbage, b"not an image at all").unwrap();
-    let err = fails(deepmorph().arg("morph").args([&garbage, &b]).arg("-o").arg(&out));
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&garbage, &b])
+            .arg("-o")
+            .arg(&out),
+    );
     assert!(err.contains("garbage.png"), "{err}");
 
     let err = fails(&mut morph(&["-K", "0"]));

@@ -65,12 +65,7 @@ impl Case {
 fn jacobian_of(j: Tensor<4>) -> Jacobian {
     // j: [1, 2, 2, n] after the leading unit dim.
     let [_, _, _, n] = j.dims();
-    let entry = |a: usize, b: usize| {
-        j.clone()
-            .narrow(1, a, 1)
-            .narrow(2, b, 1)
-            .reshape([1, 1, n])
-    };
+    let entry = |a: usize, b: usize| j.clone().narrow(1, a, 1).narrow(2, b, 1).reshape([1, 1, n]);
     Jacobian {
         j00: entry(0, 0),
         j01: entry(0, 1),
@@ -108,7 +103,11 @@ fn prefilter_matrices_and_taps() {
             golden.output(&format!("P1d_{n}")),
         );
     }
-    assert_golden("taps25", &bspline_prefilter_taps25(), golden.output("taps25"));
+    assert_golden(
+        "taps25",
+        &bspline_prefilter_taps25(),
+        golden.output("taps25"),
+    );
 }
 
 fn prefilter(backend: Backend) {

@@ -43,11 +43,18 @@ fn prox(backend: Backend) {
     check("Lambda", values(lin.slopes.clone()));
 
     let kappa = golden.param("kappa");
-    let (k, delta, c_tot) = (golden.param("K"), golden.param("delta"), golden.param("C_tot"));
+    let (k, delta, c_tot) = (
+        golden.param("K"),
+        golden.param("delta"),
+        golden.param("C_tot"),
+    );
     let (h, w) = (grid.height() as f64, grid.width() as f64);
     assert!((kappa - k / (delta * c_tot * h * w)).abs() < 1e-15 * kappa);
     let data = LinearisedData::new(&grid, lin, phi_tilde.clone(), kappa);
-    for (i, l) in [golden.param("L0"), golden.param("L1")].into_iter().enumerate() {
+    for (i, l) in [golden.param("L0"), golden.param("L1")]
+        .into_iter()
+        .enumerate()
+    {
         let y = phi_tilde.clone() - g.clone().mul_scalar(1.0 / l);
         check(&format!("y_L{i}"), values(y.clone()));
         check(&format!("phi_new_L{i}"), values(data.prox(y, l)));
@@ -98,7 +105,11 @@ impl SweepCase {
     }
 
     fn check(&self, name: &str, got: &[f64]) {
-        assert_loose(&format!("{}.{name}", self.golden.name), got, self.want(name));
+        assert_loose(
+            &format!("{}.{name}", self.golden.name),
+            got,
+            self.want(name),
+        );
     }
 
     fn check_counts(&self, name: &str, got: &[usize]) {
@@ -113,17 +124,31 @@ fn interior(state: &LevelState) -> Vec<f64> {
 }
 
 fn lipschitz_f(report: &SweepReport) -> Vec<f64> {
-    report.features.iter().flat_map(|s| s.lipschitz.clone()).collect()
+    report
+        .features
+        .iter()
+        .flat_map(|s| s.lipschitz.clone())
+        .collect()
 }
 
 fn trials_f(report: &SweepReport) -> Vec<usize> {
-    report.features.iter().flat_map(|s| s.trials.clone()).collect()
+    report
+        .features
+        .iter()
+        .flat_map(|s| s.trials.clone())
+        .collect()
 }
 
 fn ipalm_sweep_rgb(backend: Backend) {
     let case = SweepCase::open("ipalm_sweep_rgb_K3_10x13", backend);
     let grid = grid_for(&case.golden.input("f").shape, &case.device, F32);
-    let l_f = case.golden.input("L_f").data.iter().map(|&l| vec![l]).collect();
+    let l_f = case
+        .golden
+        .input("L_f")
+        .data
+        .iter()
+        .map(|&l| vec![l])
+        .collect();
     let mut state = LevelState::new(
         case.frames("f"),
         case.frames("phi"),
@@ -156,8 +181,11 @@ fn ipalm_sweep_rgb(backend: Backend) {
         case.check(&format!("L_f_{sweep}"), &lipschitz_f(&report));
         let trials: Vec<usize> = report.deformation.iter().map(|s| s.trials).collect();
         case.check_counts(&format!("phi_trials_{sweep}"), &trials);
-        let inadmissible: Vec<usize> =
-            report.deformation.iter().map(|s| s.inadmissible_trials).collect();
+        let inadmissible: Vec<usize> = report
+            .deformation
+            .iter()
+            .map(|s| s.inadmissible_trials)
+            .collect();
         case.check_counts(&format!("phi_inadmissible_trials_{sweep}"), &inadmissible);
         case.check_counts(&format!("f_trials_{sweep}"), &trials_f(&report));
         case.check(&format!("E_{sweep}"), &values(ipalm.energy(&state).total));
@@ -173,7 +201,13 @@ fn ipalm_sweep_deep(backend: Backend) {
     let grid = grid_for(&case.golden.input("f").shape, &case.device, F32);
     let c_tot = case.golden.param("C_tot") as usize;
     let layout = FeatureLayout::deep(case.golden.param("eta"), c_tot - 3).unwrap();
-    let l_f = case.golden.input("L_f").data.chunks(2).map(<[f64]>::to_vec).collect();
+    let l_f = case
+        .golden
+        .input("L_f")
+        .data
+        .chunks(2)
+        .map(<[f64]>::to_vec)
+        .collect();
     let mut state = LevelState::new(
         case.frames("f"),
         case.frames("phi"),
@@ -239,7 +273,13 @@ fn multilevel_rgb(backend: Backend) {
     let mut log = EnergyLog(Vec::new());
     let morph = Multilevel::new(config)
         .unwrap()
-        .run(&case.device, input("u_A"), input("u_B"), &mut log, &AtomicBool::new(false))
+        .run(
+            &case.device,
+            input("u_A"),
+            input("u_B"),
+            &mut log,
+            &AtomicBool::new(false),
+        )
         .unwrap();
     assert_eq!(morph.termination, Termination::Completed);
     case.check("energies_level0", &log.0[0]);

@@ -82,7 +82,11 @@ fn central(_: usize) -> f64 {
 /// on the first/last column), else 0.
 fn inward_on_boundary(i: usize) -> f64 {
     let (axis, row, col) = ((i / (H * W)) % 2, (i / W) % H, i % W);
-    let (pos, last) = if axis == 0 { (row, H - 1) } else { (col, W - 1) };
+    let (pos, last) = if axis == 0 {
+        (row, H - 1)
+    } else {
+        (col, W - 1)
+    };
     if pos == 0 {
         1.0
     } else if pos == last {
@@ -156,11 +160,17 @@ fn density_gradient_check(backend: Backend) {
     };
     let grads = density(&leaf, params.lambda, params.mu).sum().backward();
     let hand = density_gradient(&jac(&entries), params.lambda, params.mu);
-    let auto = [&leaf.j00, &leaf.j01, &leaf.j10, &leaf.j11].map(|t| values(t.grad(&grads).unwrap()));
+    let auto =
+        [&leaf.j00, &leaf.j01, &leaf.j10, &leaf.j11].map(|t| values(t.grad(&grads).unwrap()));
     let hand = [hand.j00, hand.j01, hand.j10, hand.j11].map(values);
     for e in 0..4 {
         let what = format!("dW/dJ[{}][{}]", e / 2, e % 2);
-        check(&format!("{what} hand vs autodiff"), &hand[e], &auto[e], HAND_VS_AUTODIFF);
+        check(
+            &format!("{what} hand vs autodiff"),
+            &hand[e],
+            &auto[e],
+            HAND_VS_AUTODIFF,
+        );
         // W acts matrix by matrix, so one ± step of entry e in all n matrices at once is a
         // full set of central differences.
         let shifted = |sign: f64| {
@@ -169,8 +179,17 @@ fn density_gradient_check(backend: Backend) {
             values(density(&jac(&moved), params.lambda, params.mu))
         };
         let (plus, minus) = (shifted(1.0), shifted(-1.0));
-        let fd: Vec<f64> = plus.iter().zip(&minus).map(|(p, m)| (p - m) / (2.0 * STEP)).collect();
-        check(&format!("{what} hand vs FD"), &hand[e], &fd, FINITE_DIFFERENCE);
+        let fd: Vec<f64> = plus
+            .iter()
+            .zip(&minus)
+            .map(|(p, m)| (p - m) / (2.0 * STEP))
+            .collect();
+        check(
+            &format!("{what} hand vs FD"),
+            &hand[e],
+            &fd,
+            FINITE_DIFFERENCE,
+        );
     }
 }
 
@@ -184,7 +203,9 @@ fn regularizer_gradient_check(backend: Backend) {
     let a: Tensor<3> = s.tensor(a_host.clone(), [1, H, W]);
 
     let leaf = phi.clone().require_grad();
-    let grads = regularizer(leaf.clone(), a.clone(), params.lambda, params.mu).sum().backward();
+    let grads = regularizer(leaf.clone(), a.clone(), params.lambda, params.mu)
+        .sum()
+        .backward();
     let auto = values(leaf.grad(&grads).unwrap());
     let hand = values(regularizer_gradient(phi, a, params.lambda, params.mu));
     check("dR/dphi hand vs autodiff", &hand, &auto, HAND_VS_AUTODIFF);
@@ -265,9 +286,24 @@ fn data_term_gradient_check(backend: Backend) {
         }),
     ];
     for (i, name) in ["f", "f~", "phi"].iter().enumerate() {
-        check(&format!("dD/d{name} auto vs FD"), &auto[i], &fd[i], FINITE_DIFFERENCE);
-        check(&format!("dD/d{name} hand vs FD"), &hand[i], &fd[i], FINITE_DIFFERENCE);
-        check(&format!("dD/d{name} hand vs autodiff"), &hand[i], &auto[i], HAND_VS_AUTODIFF);
+        check(
+            &format!("dD/d{name} auto vs FD"),
+            &auto[i],
+            &fd[i],
+            FINITE_DIFFERENCE,
+        );
+        check(
+            &format!("dD/d{name} hand vs FD"),
+            &hand[i],
+            &fd[i],
+            FINITE_DIFFERENCE,
+        );
+        check(
+            &format!("dD/d{name} hand vs autodiff"),
+            &hand[i],
+            &auto[i],
+            HAND_VS_AUTODIFF,
+        );
     }
 }
 
@@ -326,7 +362,12 @@ fn path_energy_gradient_check(backend: Backend) {
     check("dE/dphi hand vs FD", &hand_phi, &fd_phi, FINITE_DIFFERENCE);
     check("dE/df auto vs FD", &auto_f, &fd_f, FINITE_DIFFERENCE);
     check("dE/df hand vs autodiff", &hand_f, &auto_f, HAND_VS_AUTODIFF);
-    check("dE/dphi hand vs autodiff", &hand_phi, &auto_phi, HAND_VS_AUTODIFF);
+    check(
+        "dE/dphi hand vs autodiff",
+        &hand_phi,
+        &auto_phi,
+        HAND_VS_AUTODIFF,
+    );
 }
 
 on_each_cpu_backend!(

@@ -40,7 +40,13 @@ fn warp_of_identity_is_identity(backend: Backend, precision: Precision) {
         let f: Tensor<4> = grid.tensor(f_host.clone(), [1, 3, h, w]);
         let warped = BSpline::new(&grid).warp(f, grid.identity(1));
         let what = format!("T[f, Id] on {h}x{w}");
-        assert_close(&what, &values(warped), &f_host, 0.0, zero_tolerance(precision));
+        assert_close(
+            &what,
+            &values(warped),
+            &f_host,
+            0.0,
+            zero_tolerance(precision),
+        );
     }
 }
 
@@ -60,8 +66,8 @@ fn warp_is_linear_in_the_image(backend: Backend, precision: Precision) {
             f.clone().mul_scalar(alpha) + g.clone().mul_scalar(beta),
             phi.clone(),
         );
-        let separate = bspline.warp(f, phi.clone()).mul_scalar(alpha)
-            + bspline.warp(g, phi).mul_scalar(beta);
+        let separate =
+            bspline.warp(f, phi.clone()).mul_scalar(alpha) + bspline.warp(g, phi).mul_scalar(beta);
         assert_close(
             &format!("T linear on {h}x{w}"),
             &values(combined),
@@ -103,23 +109,41 @@ fn constant_path_has_zero_energy(backend: Backend, precision: Precision) {
     let (h, w, c, k) = (16, 13, 3, 4);
     let grid = grid(&device, precision, (h, w));
     let image = Rng(12).smooth_image(c, h, w);
-    let f: Tensor<4> = grid.tensor(image.repeat(k + 1), [k + 1, c, h, w]).require_grad();
+    let f: Tensor<4> = grid
+        .tensor(image.repeat(k + 1), [k + 1, c, h, w])
+        .require_grad();
     let phi = grid.identity(k).require_grad();
     let energy = PathEnergy::new(&grid, EnergyParams::rgb(), c).unwrap();
-    let a = energy
-        .anisotropy()
-        .compute(f.clone().narrow(0, 1, k));
+    let a = energy.anisotropy().compute(f.clone().narrow(0, 1, k));
     let value = energy.value(f.clone(), phi.clone(), a);
     let tol = zero_tolerance(precision);
     // E is a mean of squared residuals of size `tol`, so it vanishes to `tol²`.
-    assert_close("E(A = B)", &values(value.total.clone()), &[0.0], 0.0, tol * tol);
+    assert_close(
+        "E(A = B)",
+        &values(value.total.clone()),
+        &[0.0],
+        0.0,
+        tol * tol,
+    );
     let grads = value.total.backward();
     let grad_f = values(f.grad(&grads).unwrap().narrow(0, 1, k - 1));
     let grad_phi = values(phi.grad(&grads).unwrap());
     // ∇E is of the order of the residual over the pixel count.
     let grad_tol = tol * k as f64 / (h * w) as f64;
-    assert_close("dE/df(A = B)", &grad_f, &vec![0.0; grad_f.len()], 0.0, grad_tol);
-    assert_close("dE/dphi(A = B)", &grad_phi, &vec![0.0; grad_phi.len()], 0.0, grad_tol);
+    assert_close(
+        "dE/df(A = B)",
+        &grad_f,
+        &vec![0.0; grad_f.len()],
+        0.0,
+        grad_tol,
+    );
+    assert_close(
+        "dE/dphi(A = B)",
+        &grad_phi,
+        &vec![0.0; grad_phi.len()],
+        0.0,
+        grad_tol,
+    );
 }
 
 /// Prolongating `Id` gives `Id`: a multilevel run of `A = B` stays constant across levels.

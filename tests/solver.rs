@@ -42,11 +42,18 @@ impl Observer for Watch {
         if e.sweep == 0 {
             self.energies.push(Vec::new());
         }
-        assert!(e.energy.is_finite(), "level {} sweep {}: E = {}", e.level, e.sweep, e.energy);
+        assert!(
+            e.energy.is_finite(),
+            "level {} sweep {}: E = {}",
+            e.level,
+            e.sweep,
+            e.energy
+        );
         self.energies[e.level].push(e.energy);
         let phi = Tensor::cat(e.state.phi.clone(), 0);
         if !admissible_each(e.grid, phi).into_iter().all(|ok| ok) {
-            self.inadmissible.push(format!("level {} sweep {}", e.level, e.sweep));
+            self.inadmissible
+                .push(format!("level {} sweep {}", e.level, e.sweep));
         }
     }
 }
@@ -58,7 +65,11 @@ fn run(device: &Device, config: MultilevelConfig, a: Tensor<4>, b: Tensor<4>) ->
         .run(device, a, b, &mut watch, &AtomicBool::new(false))
         .unwrap();
     assert_eq!(morph.termination, Termination::Completed);
-    assert!(watch.inadmissible.is_empty(), "inadmissible φ after {:?}", watch.inadmissible);
+    assert!(
+        watch.inadmissible.is_empty(),
+        "inadmissible φ after {:?}",
+        watch.inadmissible
+    );
     (morph, watch)
 }
 
@@ -141,12 +152,20 @@ fn equal_images_stay_constant(backend: Backend) {
     }
     let a = values(a);
     for f in &morph.state.f {
-        let diff = values(f.clone()).iter().zip(&a).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+        let diff = values(f.clone())
+            .iter()
+            .zip(&a)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
         assert!(diff < 1e-5, "a frame moved by {diff} for A = B");
     }
     let id = values(morph.grid.identity(1));
     for phi in &morph.state.phi {
-        let diff = values(phi.clone()).iter().zip(&id).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+        let diff = values(phi.clone())
+            .iter()
+            .zip(&id)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
         assert!(diff < 1e-5, "a deformation moved by {diff} for A = B");
     }
 }

@@ -76,7 +76,11 @@ impl Anisotropy {
 
 /// Gaussian smoothing `G_s ∗` with mirror boundary on both axes (SPEC §3).
 pub fn gaussian_smoothing(grid: &Grid, s: f64) -> Separable {
-    Separable::new(grid, &gaussian(grid.height(), s), &gaussian(grid.width(), s))
+    Separable::new(
+        grid,
+        &gaussian(grid.height(), s),
+        &gaussian(grid.width(), s),
+    )
 }
 
 /// The central-difference derivative in domain units along rows (`axis = 0`) or columns

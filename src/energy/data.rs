@@ -38,7 +38,12 @@ pub fn data_term_from_coefficients(
     let [n, c, h, w] = f.dims();
     let residual = bspline.interpolate(coeffs_tilde, phi) - f;
     let scale = 1.0 / (2.0 * c_tot as f64 * (h * w) as f64);
-    residual.square().reshape([n, c * h * w]).sum_dim(1).reshape([n]).mul_scalar(scale)
+    residual
+        .square()
+        .reshape([n, c * h * w])
+        .sum_dim(1)
+        .reshape([n])
+        .mul_scalar(scale)
 }
 
 /// Hand-derived gradients of [`data_term`] (for the gradient checks).

@@ -16,7 +16,11 @@ pub fn density(j: &Jacobian, lambda: f64, mu: f64) -> burn::tensor::Tensor<3> {
     let det = j.det();
     let folded = det.clone().lower_equal_elem(0.0);
     let log_det = det.clamp_min(f64::from(f32::MIN_POSITIVE)).log();
-    let volume = log_det.square().exp().sub_scalar(1.0).mul_scalar(lambda / 2.0);
+    let volume = log_det
+        .square()
+        .exp()
+        .sub_scalar(1.0)
+        .mul_scalar(lambda / 2.0);
     let strain = (j.j00.clone().sub_scalar(1.0).square()
         + j.j11.clone().sub_scalar(1.0).square()
         + (j.j01.clone() + j.j10.clone()).square().mul_scalar(0.5))

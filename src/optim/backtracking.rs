@@ -81,10 +81,12 @@ mod tests {
         assert!(b.accepts(1.5, 1.0, -0.5, 2.0, 1.0)); // 1.5 <= 1 − 0.5 + 1
         assert!(!b.accepts(f64::INFINITY, 1.0, 0.0, 0.0, 1.0));
         assert!(!b.accepts(f64::NAN, 1.0, 0.0, 0.0, 1.0));
-        let bad = Backtracking {
-            shrink: 1.5,
-            ..b
-        };
-        assert!(bad.validate().unwrap_err().to_string().contains("shrink = 1.5"));
+        let bad = Backtracking { shrink: 1.5, ..b };
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("shrink = 1.5")
+        );
     }
 }

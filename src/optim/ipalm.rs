@@ -290,8 +290,11 @@ impl Ipalm {
     /// `E` of `state` with every `a_k` recomputed from its `f_k` (SPEC §10: the energy after
     /// a sweep).
     pub fn energy(&self, state: &LevelState) -> EnergyValue {
-        self.energy
-            .value(state.frames(), state.deformations(), self.anisotropies(state))
+        self.energy.value(
+            state.frames(),
+            state.deformations(),
+            self.anisotropies(state),
+        )
     }
 
     /// One sweep over `k = 1..K` (SPEC §6), updating `state` in place.
@@ -340,12 +343,13 @@ impl Ipalm {
         let p = *self.energy.params();
         let bt = self.config.backtracking;
         let phi = state.phi[k - 1].clone();
-        let smooth = |phi: Tensor<4>| regularizer(phi, a.clone(), p.lambda, p.mu).mul_scalar(k_steps);
+        let smooth =
+            |phi: Tensor<4>| regularizer(phi, a.clone(), p.lambda, p.mu).mul_scalar(k_steps);
 
         let mut phi_tilde = phi.clone();
         if self.config.beta > 0.0 {
-            let extrapolated =
-                phi.clone() + (phi.clone() - state.phi_prev[k - 1].clone()).mul_scalar(self.config.beta);
+            let extrapolated = phi.clone()
+                + (phi.clone() - state.phi_prev[k - 1].clone()).mul_scalar(self.config.beta);
             if is_admissible(&self.grid, extrapolated.clone()) {
                 phi_tilde = extrapolated;
             }
@@ -478,8 +482,13 @@ impl Ipalm {
                     phi_k.clone(),
                     c_tot,
                 );
-                let fixed =
-                    data_term_from_coefficients(bspline, x, next_coeffs.clone(), phi_next.clone(), c_tot);
+                let fixed = data_term_from_coefficients(
+                    bspline,
+                    x,
+                    next_coeffs.clone(),
+                    phi_next.clone(),
+                    c_tot,
+                );
                 (warped + fixed).mul_scalar(k_steps / p.delta)
             };
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();

@@ -78,10 +78,7 @@ impl LinearisedData {
             a00: channel_sum(l0.clone().square()),
             a01: channel_sum(l0.clone() * l1.clone()),
             a11: channel_sum(l1.clone().square()),
-            v: Tensor::cat(
-                vec![channel_sum(l0 * q.clone()), channel_sum(l1 * q)],
-                1,
-            ),
+            v: Tensor::cat(vec![channel_sum(l0 * q.clone()), channel_sum(l1 * q)], 1),
         }
     }
 

@@ -103,7 +103,11 @@ impl Golden {
             name: raw.name,
             params: raw.params,
             inputs: raw.inputs.into_iter().map(|(k, v)| (k, v.into())).collect(),
-            outputs: raw.outputs.into_iter().map(|(k, v)| (k, v.into())).collect(),
+            outputs: raw
+                .outputs
+                .into_iter()
+                .map(|(k, v)| (k, v.into()))
+                .collect(),
         }
     }
 
@@ -223,7 +227,9 @@ impl Rng {
                     let (x, y) = (i as f64 / (h - 1) as f64, j as f64 / (w - 1) as f64);
                     let v: f64 = modes
                         .iter()
-                        .map(|&(p, q, a)| a * (std::f64::consts::PI * (p * x + q * y) + phase).cos())
+                        .map(|&(p, q, a)| {
+                            a * (std::f64::consts::PI * (p * x + q * y) + phase).cos()
+                        })
                         .sum();
                     out.push(0.5 + v);
                 }
@@ -247,10 +253,11 @@ impl Rng {
                         let pi = std::f64::consts::PI;
                         // sin(π p) is 1e-16, not 0: the boundary must be Id exactly.
                         let edge = i == 0 || j == 0 || i == h - 1 || j == w - 1;
-                        let v: f64 = if edge { 0.0 } else { 1.0 } * modes
-                            .iter()
-                            .map(|&(p, q, a)| a * (pi * p * x).sin() * (pi * q * y).sin())
-                            .sum::<f64>()
+                        let v: f64 = if edge { 0.0 } else { 1.0 }
+                            * modes
+                                .iter()
+                                .map(|&(p, q, a)| a * (pi * p * x).sin() * (pi * q * y).sin())
+                                .sum::<f64>()
                             * amplitude
                             / 2.0;
                         let id = if axis == 0 { i } else { j } as f64;
