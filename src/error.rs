@@ -72,5 +72,16 @@ pub enum Error {
     },
 }
 
+impl Error {
+    /// [`Error::InvalidParameter`] for `name = value`, valid when `expected`.
+    pub fn invalid(name: &'static str, value: impl ToString, expected: &'static str) -> Self {
+        Self::InvalidParameter {
+            name,
+            value: value.to_string(),
+            expected,
+        }
+    }
+}
+
 /// Shorthand for results of this crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;

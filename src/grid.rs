@@ -25,11 +25,7 @@ impl Grid {
     pub fn new(height: usize, width: usize, device: &Device, dtype: DType) -> Result<Self> {
         for (name, n) in [("height", height), ("width", width)] {
             if n < 4 {
-                return Err(Error::InvalidParameter {
-                    name,
-                    value: n.to_string(),
-                    expected: "at least 4 pixels",
-                });
+                return Err(Error::invalid(name, n, "at least 4 pixels"));
             }
         }
         Ok(Self {

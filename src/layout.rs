@@ -46,11 +46,7 @@ impl FeatureLayout {
     pub fn deep(eta: f64, features: usize) -> Result<Self> {
         crate::params::positive("eta", eta)?;
         if features == 0 {
-            return Err(Error::InvalidParameter {
-                name: "features",
-                value: "0".into(),
-                expected: "at least 1 channel",
-            });
+            return Err(Error::invalid("features", "0", "at least 1 channel"));
         }
         Ok(Self {
             channels: 3 + features,

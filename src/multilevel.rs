@@ -56,14 +56,6 @@ impl Default for MultilevelConfig {
     }
 }
 
-fn invalid(name: &'static str, value: impl ToString, expected: &'static str) -> Error {
-    Error::InvalidParameter {
-        name,
-        value: value.to_string(),
-        expected,
-    }
-}
-
 impl MultilevelConfig {
     /// Checks every parameter.
     ///
@@ -72,10 +64,10 @@ impl MultilevelConfig {
     /// [`Error::InvalidParameter`] naming the first bad value.
     pub fn validate(&self) -> Result<()> {
         if self.steps < 1 {
-            return Err(invalid("K", self.steps, "at least 1"));
+            return Err(Error::invalid("K", self.steps, "at least 1"));
         }
         if self.levels < 1 {
-            return Err(invalid("levels", self.levels, "at least 1"));
+            return Err(Error::invalid("levels", self.levels, "at least 1"));
         }
         if let InitialLipschitz::Constant(l) = self.initial_lipschitz {
             crate::params::positive("initial L", l)?;

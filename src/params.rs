@@ -69,11 +69,7 @@ pub(crate) fn positive(name: &'static str, value: f64) -> Result<()> {
     if value.is_finite() && value > 0.0 {
         Ok(())
     } else {
-        Err(Error::InvalidParameter {
-            name,
-            value: value.to_string(),
-            expected: "a finite number > 0",
-        })
+        Err(Error::invalid(name, value, "a finite number > 0"))
     }
 }
 

@@ -87,6 +87,17 @@ impl SweepCase {
         (0..n).map(|i| t.clone().narrow(0, i, 1)).collect()
     }
 
+    /// The input state, with `blocks` stored `L_f` per interior frame.
+    fn state(&self, blocks: usize) -> LevelState {
+        let input = |name: &str| self.golden.input(name).data.clone();
+        let l_f = input("L_f").chunks(blocks).map(<[f64]>::to_vec).collect();
+        let mut state =
+            LevelState::new(self.frames("f"), self.frames("phi"), input("L_phi"), l_f).unwrap();
+        state.f_prev = self.frames("f_prev");
+        state.phi_prev = self.frames("phi_prev");
+        state
+    }
+
     fn params(&self) -> EnergyParams {
         let p = |name: &str| self.golden.param(name);
         EnergyParams {
@@ -142,22 +153,7 @@ fn trials_f(report: &SweepReport) -> Vec<usize> {
 fn ipalm_sweep_rgb(backend: Backend) {
     let case = SweepCase::open("ipalm_sweep_rgb_K3_10x13", backend);
     let grid = grid_for(&case.golden.input("f").shape, &case.device, F32);
-    let l_f = case
-        .golden
-        .input("L_f")
-        .data
-        .iter()
-        .map(|&l| vec![l])
-        .collect();
-    let mut state = LevelState::new(
-        case.frames("f"),
-        case.frames("phi"),
-        case.golden.input("L_phi").data.clone(),
-        l_f,
-    )
-    .unwrap();
-    state.f_prev = case.frames("f_prev");
-    state.phi_prev = case.frames("phi_prev");
+    let mut state = case.state(1);
 
     let solver = |beta: f64| {
         let config = IpalmConfig {
@@ -201,22 +197,7 @@ fn ipalm_sweep_deep(backend: Backend) {
     let grid = grid_for(&case.golden.input("f").shape, &case.device, F32);
     let c_tot = case.golden.param("C_tot") as usize;
     let layout = FeatureLayout::deep(case.golden.param("eta"), c_tot - 3).unwrap();
-    let l_f = case
-        .golden
-        .input("L_f")
-        .data
-        .chunks(2)
-        .map(<[f64]>::to_vec)
-        .collect();
-    let mut state = LevelState::new(
-        case.frames("f"),
-        case.frames("phi"),
-        case.golden.input("L_phi").data.clone(),
-        l_f,
-    )
-    .unwrap();
-    state.f_prev = case.frames("f_prev");
-    state.phi_prev = case.frames("phi_prev");
+    let mut state = case.state(2);
     let config = IpalmConfig {
         beta: case.golden.param("beta"),
         safeguard: false,

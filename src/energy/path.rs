@@ -54,11 +54,7 @@ impl PathEnergy {
     pub fn new(grid: &Grid, params: EnergyParams, channels: usize) -> Result<Self> {
         params.validate()?;
         if channels == 0 {
-            return Err(Error::InvalidParameter {
-                name: "channels",
-                value: "0".into(),
-                expected: "at least 1",
-            });
+            return Err(Error::invalid("channels", "0", "at least 1"));
         }
         Ok(Self {
             params,

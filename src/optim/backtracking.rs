@@ -37,25 +37,13 @@ impl Backtracking {
     /// [`Error::InvalidParameter`] naming the bad field.
     pub fn validate(&self) -> Result<()> {
         if !(self.shrink > 0.0 && self.shrink <= 1.0) {
-            return Err(Error::InvalidParameter {
-                name: "shrink",
-                value: self.shrink.to_string(),
-                expected: "in (0, 1]",
-            });
+            return Err(Error::invalid("shrink", self.shrink, "in (0, 1]"));
         }
         if self.max_trials == 0 {
-            return Err(Error::InvalidParameter {
-                name: "max_trials",
-                value: "0".into(),
-                expected: "at least 1",
-            });
+            return Err(Error::invalid("max_trials", "0", "at least 1"));
         }
         if !(0.0..=1e-3).contains(&self.slack) {
-            return Err(Error::InvalidParameter {
-                name: "slack",
-                value: self.slack.to_string(),
-                expected: "in [0, 1e-3]",
-            });
+            return Err(Error::invalid("slack", self.slack, "in [0, 1e-3]"));
         }
         Ok(())
     }

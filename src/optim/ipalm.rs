@@ -53,11 +53,7 @@ impl IpalmConfig {
     /// [`Error::InvalidParameter`] naming the bad field.
     pub fn validate(&self) -> Result<()> {
         if !(0.0..1.0).contains(&self.beta) {
-            return Err(Error::InvalidParameter {
-                name: "beta",
-                value: self.beta.to_string(),
-                expected: "in [0, 1)",
-            });
+            return Err(Error::invalid("beta", self.beta, "in [0, 1)"));
         }
         self.backtracking.validate()
     }

@@ -14,14 +14,7 @@ use serde::Deserialize;
 #[macro_export]
 macro_rules! on_each_backend {
     ($($name:ident),* $(,)?) => {
-        #[cfg(feature = "flex")]
-        mod flex {
-            $( #[test] fn $name() { super::$name(deepmorph::Backend::Flex) } )*
-        }
-        #[cfg(feature = "ndarray")]
-        mod ndarray {
-            $( #[test] fn $name() { super::$name(deepmorph::Backend::NdArray) } )*
-        }
+        $crate::on_each_cpu_backend!($($name),*);
         #[cfg(feature = "wgpu")]
         mod wgpu {
             $( #[test] fn $name() { super::$name(deepmorph::Backend::Wgpu) } )*
