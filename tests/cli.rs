@@ -199,3 +199,49 @@ fn bad_inputs_fail_with_a_clear_message() {
     assert_eq!(std::fs::read(&frame0).unwrap(), before);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Ctrl-C stops after the current sweep and still writes every output (exit status 130).
+#[test]
+fn interrupt_writes_outputs() {
+    let dir = scratch("interrupt");
+    let out = dir.join("out");
+    let binary = assert_cmd::cargo::cargo_bin("deepmorph");
+    let mut child = std::process::Command::new(binary)
+        .args([
+            "demo", "--size", "32", "-K", "3", "--levels", "2", "--sweeps", "1000000", "-q",
+        ])
+        .args(["--backend", "flex", "-o"])
+        .arg(&out)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_secs(2));
+    let killed = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no exit 120 s after Ctrl-C"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    };
+    assert_eq!(status.code(), Some(130));
+    for name in deepmorph::output::output_names(3) {
+        assert!(out.join(&name).is_file(), "missing {name}");
+    }
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    let termination = config["termination"].as_str().unwrap();
+    assert!(
+        termination.starts_with("interrupted at level 0"),
+        "{termination}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
