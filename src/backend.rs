@@ -96,7 +96,7 @@ impl Backend {
                 feature: self.feature(),
             });
         }
-        Ok(self.device_unchecked())
+        self.device_unchecked()
     }
 
     /// Checks that `precision` is available and returns the device.
@@ -111,16 +111,62 @@ impl Backend {
         Ok(device)
     }
 
-    fn device_unchecked(self) -> Device {
+    fn device_unchecked(self) -> Result<Device> {
         match self {
             #[cfg(feature = "flex")]
-            Backend::Flex => Device::flex(),
+            Backend::Flex => Ok(Device::flex()),
             #[cfg(feature = "ndarray")]
-            Backend::NdArray => Device::ndarray(),
+            Backend::NdArray => Ok(Device::ndarray()),
             #[cfg(feature = "wgpu")]
-            Backend::Wgpu => Device::wgpu(Default::default()),
+            Backend::Wgpu => {
+                let device = Device::wgpu(Default::default());
+                probe_wgpu(&device)?;
+                Ok(device)
+            }
             #[allow(unreachable_patterns)]
             _ => unreachable!("device() checks is_compiled first"),
+        }
+    }
+}
+
+/// Runs one tiny operation on a fresh wgpu device. Without a usable adapter wgpu panics on
+/// the first operation (or, with only a GL driver, on the first atomic add); that becomes
+/// [`Error::BackendUnavailable`] here instead of a panic deep in a morph.
+#[cfg(feature = "wgpu")]
+fn probe_wgpu(device: &Device) -> Result<()> {
+    use burn::tensor::Tensor;
+    use std::sync::Mutex;
+
+    // The panic hook is process-wide: serialise probes and restore it afterwards.
+    static PROBE: Mutex<()> = Mutex::new(());
+    let _guard = PROBE.lock().unwrap_or_else(|e| e.into_inner());
+    let hook = std::panic::take_hook();
+    std::panic::set_hook(Box::new(|_| {}));
+    let outcome = std::panic::catch_unwind(|| {
+        let x = Tensor::<1>::ones([4], device);
+        let idx = Tensor::<1, burn::tensor::Int>::zeros([4], device);
+        // A scatter-add: the atomic the warp's backward needs.
+        let y =
+            Tensor::<1>::zeros([4], device).scatter(0, idx, x, burn::tensor::IndexingUpdateOp::Add);
+        y.into_data()
+    });
+    std::panic::set_hook(hook);
+    match outcome {
+        Ok(data) if data.try_to_vec_as::<f64>().is_ok_and(|v| v[0] == 4.0) => Ok(()),
+        Ok(_) => Err(Error::BackendUnavailable {
+            backend: "wgpu",
+            detail: "a scatter-add returned a wrong result".into(),
+        }),
+        Err(payload) => {
+            let detail = payload
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_else(|| "wgpu failed to start".into());
+            Err(Error::BackendUnavailable {
+                backend: "wgpu",
+                detail,
+            })
         }
     }
 }

@@ -17,6 +17,19 @@ pub enum Error {
         feature: &'static str,
     },
 
+    /// A compiled backend cannot run on this machine (e.g. wgpu without a usable adapter).
+    #[error(
+        "the {backend} backend cannot run here: {detail}. wgpu needs a Vulkan, Metal or DX12 \
+         driver; without a GPU on Debian/Ubuntu install the software one: \
+         `apt-get install mesa-vulkan-drivers libvulkan1`"
+    )]
+    BackendUnavailable {
+        /// Backend name.
+        backend: &'static str,
+        /// What went wrong.
+        detail: String,
+    },
+
     /// The backend cannot compute in the requested precision.
     #[error("the {backend} backend does not support {dtype}")]
     UnsupportedPrecision {
