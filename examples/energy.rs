@@ -13,6 +13,7 @@ use std::time::Instant;
 
 use burn::tensor::Tensor;
 use deepmorph::energy::path::PathEnergy;
+use deepmorph::io::to_host;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 /// A soft disc of radius `0.3·size` centred at `(cy, cx)` (in pixels), red on a blue-grey
@@ -83,18 +84,13 @@ fn run() -> Result<(), Box<dyn std::error::Error>> {
     let (norm_f, norm_phi) = (norm(grad_f), norm(grad_phi));
     let elapsed = started.elapsed();
 
-    let host = |t: Tensor<1>| -> Vec<f64> {
-        t.into_data()
-            .try_into_vec_as::<f64>()
-            .expect("float tensor")
-    };
     println!(
         "deepmorph: path energy of a moving disc, {size}x{size}, K = {k}, {backend} backend, float32"
     );
     println!("initial path: f_k linear between A and B, phi_k = Id (SPEC §7)");
-    println!("  E           = {:.6e}", host(value.total)[0]);
-    println!("  R_k         = {:?}", host(value.regularizer));
-    println!("  D_k         = {:?}", host(value.data));
+    println!("  E           = {:.6e}", to_host(value.total)[0]);
+    println!("  R_k         = {:?}", to_host(value.regularizer));
+    println!("  D_k         = {:?}", to_host(value.data));
     println!(
         "  |dE/df|     = {norm_f:.6e}   (free frames f_1..f_{})",
         k - 1

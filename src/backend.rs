@@ -76,8 +76,9 @@ impl Backend {
         Self::ALL.into_iter().filter(|b| b.is_compiled()).collect()
     }
 
-    /// The default backend: the first compiled one of [`Backend::ALL`]. Flex comes first
-    /// because it is the faster CPU backend on every size we benchmarked (README).
+    /// The default backend: the first compiled one of [`Backend::ALL`]. Flex comes first: it
+    /// needs half of ndarray's memory at the deep model's sizes and is maintained upstream,
+    /// though ndarray sweeps the RGB model faster today (README, "Benchmarks").
     pub fn default_compiled() -> Option<Backend> {
         Self::ALL.into_iter().find(|b| b.is_compiled())
     }

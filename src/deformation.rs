@@ -3,6 +3,7 @@
 use burn::tensor::Tensor;
 
 use crate::grid::Grid;
+use crate::io::to_host;
 
 /// The Jacobian `J = I + ∇v` of a batch of deformations, one `[N, H, W]` map per entry:
 /// `J[a][b] = δ_ab + ∂_b v_a` with forward differences and a Neumann boundary (the
@@ -111,10 +112,7 @@ pub fn admissible_each(grid: &Grid, phi: Tensor<4>) -> Vec<bool> {
         .reshape([n, h * w])
         .min_dim(1)
         .reshape([n]);
-    let values: Vec<f64> = Tensor::cat(vec![boundary_max, min_det], 0)
-        .into_data()
-        .try_into_vec_as::<f64>()
-        .expect("float tensors convert to f64");
+    let values = to_host(Tensor::cat(vec![boundary_max, min_det], 0));
     // A NaN anywhere fails both comparisons, so it is never admissible.
     (0..n)
         .map(|k| values[k] == 0.0 && values[n + k] > 0.0)

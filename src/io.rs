@@ -181,16 +181,20 @@ pub fn to_byte(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0).round() as u8
 }
 
-/// All values of a tensor, on the host, as `f64`.
+/// All values of a float tensor, read back to the host as `f64` (one synchronisation).
+pub fn to_host<const D: usize>(t: Tensor<D>) -> Vec<f64> {
+    t.into_data()
+        .try_into_vec_as::<f64>()
+        .expect("float tensors convert to f64")
+}
+
+/// [`to_host`] for values that must not be NaN.
 ///
 /// # Errors
 ///
 /// [`Error::NonFinite`] if a value is NaN (infinities pass: callers decide).
 pub fn host_values<const D: usize>(t: Tensor<D>) -> Result<Vec<f64>> {
-    let values = t
-        .into_data()
-        .try_into_vec_as::<f64>()
-        .expect("float tensors convert to f64");
+    let values = to_host(t);
     if values.iter().any(|v| v.is_nan()) {
         return Err(Error::NonFinite {
             what: "NaN in a tensor read back to the host".into(),

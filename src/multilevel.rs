@@ -9,6 +9,7 @@ use burn::tensor::{Device, Tensor};
 
 use crate::error::{Error, Result};
 use crate::grid::Grid;
+use crate::io::to_host;
 use crate::layout::FeatureLayout;
 use crate::optim::ipalm::{
     Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport, initial_lipschitz,
@@ -268,17 +269,14 @@ impl Multilevel {
             let mut report_sweep =
                 |sweep: usize, report: Option<&SweepReport>, state: &LevelState| {
                     let value = ipalm.energy(state);
-                    let numbers = Tensor::cat(
+                    let numbers = to_host(Tensor::cat(
                         vec![
                             value.total,
                             value.regularizer.sum().mul_scalar(k as f64),
                             value.data.sum().mul_scalar(k as f64 / cfg.params.delta),
                         ],
                         0,
-                    )
-                    .into_data()
-                    .try_into_vec_as::<f64>()
-                    .expect("float tensors convert to f64");
+                    ));
                     if !numbers[0].is_finite() {
                         return Err(Error::NonFinite {
                             what: format!("energy {} at level {level}, sweep {sweep}", numbers[0]),

@@ -13,6 +13,7 @@ use crate::energy::path::{EnergyValue, PathEnergy};
 use crate::energy::regularizer::regularizer;
 use crate::error::{Error, Result};
 use crate::grid::Grid;
+use crate::io::to_host;
 use crate::layout::FeatureLayout;
 use crate::optim::backtracking::Backtracking;
 use crate::optim::prox::{LinearisedData, linearise};
@@ -228,17 +229,12 @@ pub struct Ipalm {
 
 /// One number read back from the device.
 fn scalar(t: Tensor<1>) -> f64 {
-    t.into_data()
-        .try_into_vec_as::<f64>()
-        .expect("float tensors convert to f64")[0]
+    to_host(t)[0]
 }
 
 /// Several numbers read back at once (one synchronisation).
 fn scalars(parts: Vec<Tensor<1>>) -> Vec<f64> {
-    Tensor::cat(parts, 0)
-        .into_data()
-        .try_into_vec_as::<f64>()
-        .expect("float tensors convert to f64")
+    to_host(Tensor::cat(parts, 0))
 }
 
 impl Ipalm {

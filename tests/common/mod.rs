@@ -148,7 +148,7 @@ pub fn tensor<const D: usize>(array: &Array, device: &Device, dtype: DType) -> T
 
 /// The values of a tensor on the host.
 pub fn values<const D: usize>(t: Tensor<D>) -> Vec<f64> {
-    t.into_data().try_into_vec_as::<f64>().expect("float data")
+    deepmorph::io::to_host(t)
 }
 
 /// Asserts `max|got − want| ≤ rel · max|want| + abs` (SPEC "Golden vectors": relative to the
