@@ -75,6 +75,16 @@ pub enum Error {
         what: String,
     },
 
+    /// A file that could be read but does not hold what it should (truth files, saved
+    /// deformations, a morph's output folder).
+    #[error("{}: {detail}", path.display())]
+    Format {
+        /// The file.
+        path: std::path::PathBuf,
+        /// What is wrong with it.
+        detail: String,
+    },
+
     /// Tensor arguments whose shapes do not fit together.
     #[error("{op}: {detail}")]
     Shape {

@@ -20,6 +20,9 @@
 //! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5).
 //! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6).
 //! - [`resample`]: bilinear resizing and prolongation (SPEC §7).
+//! - [`metrics`], [`truth`], [`eval`], [`synthetic`]: quality numbers of a finished morph
+//!   (composed map, `det J`, energy split, warp consistency, endpoint error against ground
+//!   truth) and synthetic pairs with a known deformation.
 #![warn(missing_docs)]
 
 pub mod backend;
@@ -27,9 +30,11 @@ pub mod deformation;
 pub mod demo;
 pub mod energy;
 pub mod error;
+pub mod eval;
 pub mod grid;
 pub mod io;
 pub mod layout;
+pub mod metrics;
 pub mod multilevel;
 pub mod observe;
 pub mod optim;
@@ -39,6 +44,8 @@ pub mod resample;
 pub mod separable;
 pub mod sobel;
 pub mod stencil;
+pub mod synthetic;
+pub mod truth;
 pub mod warp;
 
 pub use backend::{Backend, Precision};

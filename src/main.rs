@@ -7,13 +7,19 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
+use deepmorph::eval::MorphFolder;
 use deepmorph::io::{RgbImage, write_atomically, write_png};
+use deepmorph::metrics::Metrics;
 use deepmorph::multilevel::{Multilevel, MultilevelConfig, Termination};
 use deepmorph::observe::{EnergyLog, Progress, Verbosity};
 use deepmorph::optim::ipalm::IpalmConfig;
-use deepmorph::output::{contact_sheet, output_names, save_deformations, write_frames, write_gif};
+use deepmorph::output::{
+    CONFIG, METRICS, RunRecord, contact_sheet, output_names, save_composed, save_deformations,
+    write_frames, write_gif,
+};
+use deepmorph::synthetic::{Field, warped_pair};
+use deepmorph::truth::Correspondence;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
-use serde::Serialize;
 
 #[derive(Parser)]
 #[command(
@@ -50,6 +56,42 @@ enum Command {
         size: usize,
         #[command(flatten)]
         run: RunArgs,
+    },
+    /// Quality numbers of a finished morph (composed map, det J, energy split, warp
+    /// consistency, endpoint error against a ground truth); writes DIR/metrics.json.
+    Eval {
+        /// A morph's output directory.
+        dir: PathBuf,
+        /// Ground truth for the first image: a Middlebury disparity PNG (16-bit, d x 256,
+        /// 0 = unknown) or a Middlebury .flo flow file, at the input image's size.
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Compute backend (flex, ndarray or wgpu, as compiled in).
+        #[arg(long)]
+        backend: Option<Backend>,
+        /// Print only errors.
+        #[arg(short, long)]
+        quiet: bool,
+    },
+    /// Make a synthetic pair with a known deformation: OUT/a.png = IMAGE warped,
+    /// OUT/b.png = IMAGE, OUT/truth.flo = the correspondence of a to b.
+    Warp {
+        /// The image to warp.
+        image: PathBuf,
+        /// smooth: a swirl, AMOUNT = largest displacement in pixels; rotate: AMOUNT degrees
+        /// at the centre; shear: AMOUNT columns per row at the centre. All fade out to the
+        /// fixed border.
+        #[arg(long, default_value = "smooth")]
+        field: Field,
+        /// Size of the deformation (see --field).
+        #[arg(long, allow_negative_numbers = true)]
+        amount: f64,
+        /// Output directory (created if needed).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Compute backend (flex, ndarray or wgpu, as compiled in).
+        #[arg(long)]
+        backend: Option<Backend>,
     },
 }
 
@@ -150,34 +192,6 @@ fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
     Ok((parse(h)?, parse(w)?))
 }
 
-/// Everything needed to reproduce a run, written as `config.json`.
-#[derive(Serialize)]
-struct RunRecord<'a> {
-    program: &'static str,
-    version: &'static str,
-    command: &'a str,
-    inputs: Vec<String>,
-    working_size: [usize; 2],
-    model: &'a str,
-    backend: String,
-    precision: &'static str,
-    steps: usize,
-    levels: usize,
-    sweeps: usize,
-    delta: f64,
-    lambda: f64,
-    mu: f64,
-    sigma: f64,
-    rho: f64,
-    xi1: f64,
-    xi2: f64,
-    beta: f64,
-    safeguard: bool,
-    pingpong: bool,
-    termination: String,
-    seconds: f64,
-}
-
 fn main() {
     if let Err(e) = run(Cli::parse()) {
         eprintln!("Error: {e:#}");
@@ -187,6 +201,19 @@ fn main() {
 
 fn run(cli: Cli) -> Result<()> {
     let (inputs, pair, args, command) = match cli.command {
+        Command::Eval {
+            dir,
+            truth,
+            backend,
+            quiet,
+        } => return eval(&dir, truth.as_deref(), backend, quiet),
+        Command::Warp {
+            image,
+            field,
+            amount,
+            output,
+            backend,
+        } => return warp(&image, field, amount, &output, backend),
         Command::Morph {
             a,
             b,
@@ -270,16 +297,71 @@ fn working_size_fits(h: usize, w: usize, levels: usize) -> Result<()> {
     Ok(())
 }
 
+fn backend_or_default(backend: Option<Backend>) -> Result<Backend> {
+    match backend {
+        Some(b) => Ok(b),
+        None => Backend::default_compiled().context("no backend compiled into this build"),
+    }
+}
+
+/// `deepmorph eval`: reads a morph's folder, prints its metrics and writes `metrics.json`.
+fn eval(dir: &Path, truth: Option<&Path>, backend: Option<Backend>, quiet: bool) -> Result<()> {
+    let device = backend_or_default(backend)?.device_for(Precision::F32)?;
+    let folder = MorphFolder::read(dir, &device)?;
+    let truth = truth
+        .map(|path| Correspondence::load(path).map(|t| (t, path.display().to_string())))
+        .transpose()?;
+    let metrics = folder.metrics(truth.as_ref().map(|(t, name)| (t, name.clone())))?;
+    save_composed(dir, folder.composed())?;
+    write_metrics(dir, &metrics)?;
+    if !quiet {
+        print!("{metrics}");
+    }
+    Ok(())
+}
+
+fn write_metrics(dir: &Path, metrics: &Metrics) -> Result<()> {
+    let json = serde_json::to_vec_pretty(metrics)?;
+    write_atomically(&dir.join(METRICS), |w| w.write_all(&json))?;
+    Ok(())
+}
+
+/// `deepmorph warp`: a synthetic pair with a known correspondence.
+fn warp(
+    image: &Path,
+    field: Field,
+    amount: f64,
+    out: &Path,
+    backend: Option<Backend>,
+) -> Result<()> {
+    let input = RgbImage::load(image)?;
+    let device = backend_or_default(backend)?.device_for(Precision::F32)?;
+    let (warped, truth) = warped_pair(&input, field, amount, &device)?;
+    let out = prepare_output(
+        out,
+        &[image.to_path_buf()],
+        &["a.png", "b.png", "truth.flo"],
+    )?;
+    write_png(&out.join("a.png"), &warped.to_rgb8())?;
+    write_png(&out.join("b.png"), &input.to_rgb8())?;
+    truth.write_flo(&out.join("truth.flo"))?;
+    eprintln!(
+        "wrote a.png ({field} {amount} applied to {}), b.png and truth.flo ({}x{}) to {}",
+        image.display(),
+        input.width(),
+        input.height(),
+        out.display()
+    );
+    Ok(())
+}
+
 fn morph(
     command: &str,
     inputs: &[PathBuf],
     (a, b): (RgbImage, RgbImage),
     args: &RunArgs,
 ) -> Result<()> {
-    let backend = match args.backend {
-        Some(b) => b,
-        None => Backend::default_compiled().context("no backend compiled into this build")?,
-    };
+    let backend = backend_or_default(args.backend)?;
     let params = EnergyParams {
         lambda: args.lambda,
         mu: args.mu,
@@ -302,7 +384,7 @@ fn morph(
         ..MultilevelConfig::default()
     };
     let driver = Multilevel::new(config).map_err(|e| anyhow::anyhow!("{e}"))?;
-    let out = prepare_output(&args.output, inputs, args.steps())?;
+    let out = prepare_output(&args.output, inputs, &output_names(args.steps()))?;
 
     let precision = Precision::F32;
     let device = backend.device_for(precision)?.autodiff();
@@ -368,14 +450,14 @@ fn morph(
         }
     };
     let record = RunRecord {
-        program: "deepmorph",
-        version: env!("CARGO_PKG_VERSION"),
-        command,
+        program: "deepmorph".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        command: command.into(),
         inputs: inputs.iter().map(|p| p.display().to_string()).collect(),
         working_size: [a.height(), a.width()],
-        model: &args.model,
+        model: args.model.clone(),
         backend: backend.to_string(),
-        precision: "f32",
+        precision: "f32".into(),
         steps: k,
         levels: args.levels(),
         sweeps: args.sweeps(),
@@ -393,14 +475,22 @@ fn morph(
         seconds,
     };
     let json = serde_json::to_vec_pretty(&record)?;
-    write_atomically(&out.join("config.json"), |w| w.write_all(&json))?;
+    write_atomically(&out.join(CONFIG), |w| w.write_all(&json))?;
+    // The same numbers `deepmorph eval` computes, from the files just written.
+    let folder = MorphFolder::read(&out, &backend.device_for(precision)?)?;
+    save_composed(&out, folder.composed())?;
+    let metrics = folder.metrics(None)?;
+    write_metrics(&out, &metrics)?;
     if !args.quiet {
         let last = log.records.last().map_or(f64::NAN, |r| r.energy);
         eprintln!(
-            "{termination} in {seconds:.1} s, final E = {last:.6e}; wrote {} frames, morph.gif, sheet.png, deformations, energy.csv, config.json to {}",
+            "{termination} in {seconds:.1} s, final E = {last:.6e}; wrote {} frames, morph.gif, sheet.png, deformations, composed map, energy.csv, config.json, metrics.json to {}",
             k + 1,
             out.display()
         );
+        if args.verbose {
+            eprint!("{metrics}");
+        }
     }
     if matches!(morph.termination, Termination::Interrupted { .. }) {
         std::process::exit(130);
@@ -409,13 +499,12 @@ fn morph(
 }
 
 /// Creates the output directory and refuses one whose outputs would overwrite an input.
-fn prepare_output(out: &Path, inputs: &[PathBuf], k: usize) -> Result<PathBuf> {
+fn prepare_output(out: &Path, inputs: &[PathBuf], names: &[impl AsRef<str>]) -> Result<PathBuf> {
     std::fs::create_dir_all(out)
         .with_context(|| format!("cannot create the output directory {}", out.display()))?;
     let out_dir = out
         .canonicalize()
         .with_context(|| format!("cannot resolve {}", out.display()))?;
-    let names = output_names(k);
     for input in inputs {
         let Ok(input_path) = input.canonicalize() else {
             continue;
@@ -424,7 +513,9 @@ fn prepare_output(out: &Path, inputs: &[PathBuf], k: usize) -> Result<PathBuf> {
             .file_name()
             .map(|n| n.to_string_lossy().into_owned());
         if input_path.parent() == Some(out_dir.as_path())
-            && name.as_ref().is_some_and(|n| names.contains(n))
+            && name
+                .as_ref()
+                .is_some_and(|n| names.iter().any(|m| m.as_ref() == n))
         {
             bail!(
                 "the output directory {} would overwrite the input {}: choose another -o",

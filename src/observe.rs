@@ -21,9 +21,9 @@ pub struct EnergyRecord {
     pub sweep: usize,
     /// `E` after the sweep.
     pub energy: f64,
-    /// `K Σ R_k`.
+    /// `K Σ R_k` (the CSV's `sum_R`).
     pub regularizer: f64,
-    /// `(K/δ) Σ D_k`.
+    /// `(K/δ) Σ D_k` (the CSV's `sum_D`).
     pub data: f64,
     /// Accepted `L_φ,k`, `k = 1..K` (empty for sweep 0).
     pub lipschitz_phi: Vec<f64>,
@@ -67,6 +67,50 @@ impl EnergyLog {
             );
         }
         out
+    }
+
+    /// Parses what [`to_csv`](Self::to_csv) wrote.
+    ///
+    /// # Errors
+    ///
+    /// A message naming the first line that does not parse.
+    pub fn from_csv(text: &str) -> std::result::Result<Self, String> {
+        let mut lines = text.lines();
+        let header = lines.next().unwrap_or_default();
+        if !header.starts_with("level,height,width,sweep,E,sum_R,sum_D") {
+            return Err(format!("unexpected header `{header}`"));
+        }
+        let list = |s: &str| -> std::result::Result<Vec<f64>, std::num::ParseFloatError> {
+            s.split(';')
+                .filter(|v| !v.is_empty())
+                .map(str::parse)
+                .collect()
+        };
+        let records = lines
+            .enumerate()
+            .map(|(i, line)| {
+                let bad = || format!("line {}: cannot parse `{line}`", i + 2);
+                let cols: Vec<&str> = line.split(',').collect();
+                if cols.len() != 10 {
+                    return Err(bad());
+                }
+                let int = |c: &str| c.parse::<usize>().map_err(|_| bad());
+                let num = |c: &str| c.parse::<f64>().map_err(|_| bad());
+                Ok(EnergyRecord {
+                    level: int(cols[0])?,
+                    height: int(cols[1])?,
+                    width: int(cols[2])?,
+                    sweep: int(cols[3])?,
+                    energy: num(cols[4])?,
+                    regularizer: num(cols[5])?,
+                    data: num(cols[6])?,
+                    lipschitz_phi: list(cols[7]).map_err(|_| bad())?,
+                    lipschitz_f: list(cols[8]).map_err(|_| bad())?,
+                    seconds: num(cols[9])?,
+                })
+            })
+            .collect::<std::result::Result<_, _>>()?;
+        Ok(Self { records })
     }
 }
 

@@ -3,7 +3,7 @@
 //!
 //! Every file is written atomically ([`crate::io::write_atomically`]).
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use burn::tensor::Tensor;
 use image::codecs::gif::{GifEncoder, Repeat};
@@ -28,12 +28,71 @@ pub fn output_names(k: usize) -> Vec<String> {
             "sheet.png",
             DEFORMATIONS_HEADER,
             DEFORMATIONS_DATA,
+            COMPOSED_HEADER,
+            COMPOSED_DATA,
             "energy.csv",
-            "config.json",
+            CONFIG,
+            METRICS,
         ]
         .map(String::from),
     );
     names
+}
+
+/// File name of the run's record ([`RunRecord`]).
+pub const CONFIG: &str = "config.json";
+/// File name of the quality numbers ([`crate::metrics::Metrics`]).
+pub const METRICS: &str = "metrics.json";
+
+/// Everything needed to reproduce a run, written as [`CONFIG`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RunRecord {
+    /// `"deepmorph"`.
+    pub program: String,
+    /// The program's version.
+    pub version: String,
+    /// `"morph"` or `"demo"`.
+    pub command: String,
+    /// The input files as given (none for the demo).
+    pub inputs: Vec<String>,
+    /// `[H, W]` of the finest level.
+    pub working_size: [usize; 2],
+    /// `"rgb"` or `"deep"`.
+    pub model: String,
+    /// The backend that ran it.
+    pub backend: String,
+    /// `"f32"`.
+    pub precision: String,
+    /// `K`.
+    pub steps: usize,
+    /// Pyramid levels.
+    pub levels: usize,
+    /// Sweeps per level `J`.
+    pub sweeps: usize,
+    /// `δ`.
+    pub delta: f64,
+    /// `λ`.
+    pub lambda: f64,
+    /// `μ`.
+    pub mu: f64,
+    /// `σ`.
+    pub sigma: f64,
+    /// `ρ`.
+    pub rho: f64,
+    /// `ξ₁`.
+    pub xi1: f64,
+    /// `ξ₂`.
+    pub xi2: f64,
+    /// iPALM's `β`.
+    pub beta: f64,
+    /// Whether the SPEC §6 safeguard was on.
+    pub safeguard: bool,
+    /// Whether the GIF plays back and forth.
+    pub pingpong: bool,
+    /// `"completed"` or where it was interrupted.
+    pub termination: String,
+    /// Wall-clock seconds of the solver.
+    pub seconds: f64,
 }
 
 /// Writes `frame_00.png … frame_K.png`.
@@ -226,6 +285,25 @@ pub struct DeformationsHeader {
 ///
 /// If a file cannot be written or a value is NaN.
 pub fn save_deformations(dir: &Path, phi: Tensor<4>) -> Result<()> {
+    save_field(dir, DEFORMATIONS_HEADER, DEFORMATIONS_DATA, phi)
+}
+
+/// File name of the composed map's header (same format as the deformations, `K = 1`).
+pub const COMPOSED_HEADER: &str = "composed.json";
+/// File name of the composed map's values.
+pub const COMPOSED_DATA: &str = "composed.f32";
+
+/// Saves the composed map `Φ` `[1, 2, H, W]` as [`COMPOSED_HEADER`] + [`COMPOSED_DATA`], in
+/// the deformations' format ([`load_field`] reads it).
+///
+/// # Errors
+///
+/// If a file cannot be written or a value is NaN.
+pub fn save_composed(dir: &Path, phi: Tensor<4>) -> Result<()> {
+    save_field(dir, COMPOSED_HEADER, COMPOSED_DATA, phi)
+}
+
+fn save_field(dir: &Path, header_name: &str, data_name: &str, phi: Tensor<4>) -> Result<()> {
     let shape = phi.dims();
     let values = host_values(phi)?;
     let header = DeformationsHeader {
@@ -234,15 +312,15 @@ pub fn save_deformations(dir: &Path, phi: Tensor<4>) -> Result<()> {
         shape,
         dtype: "f32le".into(),
         units: "pixels".into(),
-        data: DEFORMATIONS_DATA.into(),
+        data: data_name.into(),
     };
     let bytes: Vec<u8> = values
         .iter()
         .flat_map(|&v| (v as f32).to_le_bytes())
         .collect();
-    write_atomically(&dir.join(DEFORMATIONS_DATA), |w| w.write_all(&bytes))?;
+    write_atomically(&dir.join(data_name), |w| w.write_all(&bytes))?;
     let json = serde_json::to_vec_pretty(&header).expect("header serialises");
-    write_atomically(&dir.join(DEFORMATIONS_HEADER), |w| w.write_all(&json))
+    write_atomically(&dir.join(header_name), |w| w.write_all(&json))
 }
 
 /// Loads what [`save_deformations`] wrote: the shape `[K, 2, H, W]` and the values.
@@ -251,7 +329,17 @@ pub fn save_deformations(dir: &Path, phi: Tensor<4>) -> Result<()> {
 ///
 /// If a file is missing or malformed.
 pub fn load_deformations(dir: &Path) -> Result<([usize; 4], Vec<f32>)> {
-    let header_path: PathBuf = dir.join(DEFORMATIONS_HEADER);
+    load_field(&dir.join(DEFORMATIONS_HEADER))
+}
+
+/// Loads a field in the deformations' format from its header file: the shape
+/// `[N, 2, H, W]` and the values.
+///
+/// # Errors
+///
+/// If a file is missing or malformed.
+pub fn load_field(header_path: &Path) -> Result<([usize; 4], Vec<f32>)> {
+    let dir = header_path.parent().unwrap_or(Path::new("."));
     let read = |p: &Path| {
         std::fs::read(p).map_err(|e| Error::Io {
             path: p.to_path_buf(),
@@ -262,7 +350,7 @@ pub fn load_deformations(dir: &Path) -> Result<([usize; 4], Vec<f32>)> {
         op: "load_deformations",
         detail,
     };
-    let header: DeformationsHeader = serde_json::from_slice(&read(&header_path)?)
+    let header: DeformationsHeader = serde_json::from_slice(&read(header_path)?)
         .map_err(|e| malformed(format!("{}: {e}", header_path.display())))?;
     if header.format != "deepmorph-deformations" || header.version != 1 || header.dtype != "f32le" {
         return Err(malformed(format!(

@@ -245,3 +245,62 @@ fn interrupt_writes_outputs() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The backends compiled into this build, the reference (ndarray, else flex) first.
+fn compiled_backends() -> Vec<&'static str> {
+    [
+        (cfg!(feature = "ndarray"), "ndarray"),
+        (cfg!(feature = "flex"), "flex"),
+        (cfg!(feature = "wgpu"), "wgpu"),
+    ]
+    .into_iter()
+    .filter_map(|(on, name)| on.then_some(name))
+    .collect()
+}
+
+/// Backend parity end to end: the tiny demo (2 levels × 3 sweeps) on every compiled backend
+/// ends with the reference backend's energy (1e-4 relative) and deformations (1e-3 px).
+/// Float32 rounding differs between backends, and a backtracking decision taken on a
+/// near-tie could amplify it; these tolerances leave room for that and still catch a wrong op.
+#[test]
+fn every_backend_gives_the_same_morph() {
+    let dir = scratch("backends");
+    let run = |backend: &str| {
+        let out = dir.join(backend);
+        deepmorph()
+            .args(["demo", "--size", "32", "-q", "-o"])
+            .arg(&out)
+            .args(&TINY[..6])
+            .args(["--backend", backend])
+            .assert()
+            .success();
+        let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
+        let last = csv.lines().last().unwrap().split(',').nth(4).unwrap();
+        let energy: f64 = last.parse().unwrap();
+        let (_, phi) = load_deformations(&out).unwrap();
+        (energy, phi)
+    };
+    let backends = compiled_backends();
+    let (e_ref, phi_ref) = run(backends[0]);
+    for backend in &backends[1..] {
+        let (e, phi) = run(backend);
+        let rel = (e - e_ref).abs() / e_ref;
+        assert!(
+            rel <= 1e-4,
+            "{backend}: E = {e:e}, {} gives {e_ref:e} (relative {rel:.1e})",
+            backends[0]
+        );
+        let worst = phi
+            .iter()
+            .zip(&phi_ref)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(
+            worst <= 1e-3,
+            "{backend}: deformations differ from {} by up to {worst:e} px",
+            backends[0]
+        );
+        eprintln!("{backend}: |ΔE|/E = {rel:.1e}, max |Δφ| = {worst:.1e} px");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -1,7 +1,8 @@
 //! Gradient checks in float64 on the CPU backends: for `W`, `R`, `D` (w.r.t. `f`, `f̃`, `φ`)
 //! and `E`, the hand-derived gradient (SPEC §2's `∂W/∂J` through the adjoint of the forward
 //! differences; `β'` and the adjoint of the warp for `D`), Burn autodiff, and central finite
-//! differences of every single entry must agree.
+//! differences of every single entry must agree. On every backend (wgpu included), float32
+//! autodiff gradients must match those float64 results (backend parity).
 //!
 //! Inputs are random but smooth and reproducible: images are sums of low-frequency cosines,
 //! deformations are `Id` plus a sine series that vanishes on the boundary (admissible, up to
@@ -368,6 +369,102 @@ fn path_energy_gradient_check(backend: Backend) {
         &auto_phi,
         HAND_VS_AUTODIFF,
     );
+}
+
+/// Backend parity (wgpu included): a module of its own, since the float64 checks below
+/// already instantiate the CPU backends' test modules.
+mod parity {
+    use super::*;
+
+    /// The reference for the float32 parity check: float64 on ndarray when compiled (the design
+    /// card's CPU backend), else flex.
+    fn reference_backend() -> Backend {
+        if cfg!(feature = "ndarray") {
+            Backend::NdArray
+        } else {
+            Backend::Flex
+        }
+    }
+
+    /// Backend parity: float32 autodiff gradients of `R`, `D` and `E` on `backend` (wgpu
+    /// included) against the float64 hand-derived gradients on [`reference_backend`].
+    ///
+    /// Tolerance `2e-4 · max|want|`: float32 rounding (ε ≈ 6e-8) amplified by the `exp(log² d)`
+    /// of `W`, the 16-tap B-spline sums and the reductions of `mean`; measured ≤ 3e-5 on the CPU
+    /// backends and lavapipe.
+    fn autodiff_in_float32_matches_the_float64_reference(backend: Backend) {
+        const PARITY: (f64, f64) = (2e-4, 0.0);
+        let (k, c) = (3, 3);
+        let mut rng = Rng(5);
+        let f_host = rng.smooth_image((k + 1) * c, H, W);
+        let phi_host = rng.smooth_deformation(k, H, W, 0.8);
+        let a_host = rng.weights(k, H, W);
+        let params = EnergyParams {
+            delta: 0.7,
+            ..EnergyParams::rgb()
+        };
+        let frame = c * H * W;
+
+        let reference = {
+            let s = Setup::new(reference_backend(), 0);
+            let f: Tensor<4> = s.tensor(f_host.clone(), [k + 1, c, H, W]);
+            let phi: Tensor<4> = s.tensor(phi_host.clone(), [k, 2, H, W]);
+            let a: Tensor<3> = s.tensor(a_host.clone(), [k, H, W]);
+            assert_eq!(admissible_each(&s.grid, phi.clone()), vec![true; k]);
+            let bspline = BSpline::new(&s.grid);
+            let r = regularizer_gradient(phi.clone(), a.clone(), params.lambda, params.mu);
+            let (f0, f1) = (f.clone().narrow(0, 0, k), f.clone().narrow(0, 1, k));
+            let d = data_term_gradient(&bspline, f0, f1, phi.clone(), c);
+            let e = PathEnergy::new(&s.grid, params, c)
+                .unwrap()
+                .gradient(f, phi, a);
+            [r, d.f, d.f_tilde, d.phi, e.f_interior, e.phi].map(values)
+        };
+
+        let device = device(backend, Precision::F32, true);
+        let grid = Grid::new(H, W, &device, DType::F32).unwrap();
+        let leaf =
+            |data: &[f64], shape: [usize; 4]| grid.tensor(data.to_vec(), shape).require_grad();
+        let a: Tensor<3> = grid.tensor(a_host.clone(), [k, H, W]);
+        let bspline = BSpline::new(&grid);
+
+        let phi = leaf(&phi_host, [k, 2, H, W]);
+        let grads = regularizer(phi.clone(), a.clone(), params.lambda, params.mu)
+            .sum()
+            .backward();
+        let r = values(phi.grad(&grads).unwrap());
+
+        let f0 = leaf(&f_host[..k * frame], [k, c, H, W]);
+        let f1 = leaf(&f_host[frame..], [k, c, H, W]);
+        let phi = leaf(&phi_host, [k, 2, H, W]);
+        let grads = data_term(&bspline, f0.clone(), f1.clone(), phi.clone(), c)
+            .sum()
+            .backward();
+        let d = [f0, f1, phi].map(|t| values(t.grad(&grads).unwrap()));
+
+        let f = leaf(&f_host, [k + 1, c, H, W]);
+        let phi = leaf(&phi_host, [k, 2, H, W]);
+        let grads = PathEnergy::new(&grid, params, c)
+            .unwrap()
+            .value(f.clone(), phi.clone(), a)
+            .total
+            .backward();
+        let e_f = values(f.grad(&grads).unwrap().narrow(0, 1, k - 1));
+        let e_phi = values(phi.grad(&grads).unwrap());
+
+        let got = [r, d[0].clone(), d[1].clone(), d[2].clone(), e_f, e_phi];
+        let names = ["dR/dphi", "dD/df", "dD/df~", "dD/dphi", "dE/df", "dE/dphi"];
+        for ((name, got), want) in names.iter().zip(&got).zip(&reference) {
+            check(
+                &format!("{name} float32 autodiff vs float64 hand"),
+                got,
+                want,
+                PARITY,
+            );
+        }
+    }
+
+    on_each_backend!(autodiff_in_float32_matches_the_float64_reference);
 }
 
 on_each_cpu_backend!(
