@@ -37,6 +37,9 @@ struct Args {
     /// Sweeps per level.
     #[arg(long, default_value_t = 60)]
     sweeps: usize,
+    /// Data-term weight 1/δ (SPEC §9: 1).
+    #[arg(long, default_value_t = 1.0)]
+    delta: f64,
 }
 
 fn main() -> Result<()> {
@@ -72,15 +75,20 @@ fn main() -> Result<()> {
         steps: args.steps,
         levels: args.levels,
         sweeps: args.sweeps,
+        params: deepmorph::EnergyParams {
+            delta: args.delta,
+            ..deepmorph::EnergyParams::rgb()
+        },
         ..MultilevelConfig::default()
     };
     println!(
-        "motorcycle {}x{} -> {w}x{h}, K = {}, {} levels x {} sweeps, {backend}",
+        "motorcycle {}x{} -> {w}x{h}, K = {}, {} levels x {} sweeps, delta = {}, {backend}",
         a.width(),
         a.height(),
         args.steps,
         args.levels,
-        args.sweeps
+        args.sweeps,
+        args.delta
     );
     let started = Instant::now();
     let mut log = EnergyLog::default();

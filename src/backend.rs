@@ -163,10 +163,10 @@ fn probe_wgpu(device: &Device) -> Result<()> {
                 .downcast_ref::<String>()
                 .cloned()
                 .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
-                .unwrap_or_else(|| "wgpu failed to start".into());
+                .unwrap_or_else(|| "no message".into());
             Err(Error::BackendUnavailable {
                 backend: "wgpu",
-                detail,
+                detail: format!("no usable adapter (wgpu stopped with: {detail})"),
             })
         }
     }

@@ -2,6 +2,8 @@
 //! two sizes resized, and every kind of bad input rejected with one clear line, a non-zero
 //! exit and no panic.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 
 use assert_cmd::Command;
@@ -246,12 +248,21 @@ fn interrupt_writes_outputs() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The backends compiled into this build, the reference (ndarray, else flex) first.
+/// The backends compiled into this build that can run here, the reference (ndarray, else
+/// flex) first.
 fn compiled_backends() -> Vec<&'static str> {
+    let wgpu = cfg!(feature = "wgpu")
+        && match common::wgpu_unavailable() {
+            None => true,
+            Some(why) => {
+                eprintln!("skipped on wgpu: {why}");
+                false
+            }
+        };
     [
         (cfg!(feature = "ndarray"), "ndarray"),
         (cfg!(feature = "flex"), "flex"),
-        (cfg!(feature = "wgpu"), "wgpu"),
+        (wgpu, "wgpu"),
     ]
     .into_iter()
     .filter_map(|(on, name)| on.then_some(name))
@@ -302,5 +313,27 @@ fn every_backend_gives_the_same_morph() {
         );
         eprintln!("{backend}: |ΔE|/E = {rel:.1e}, max |Δφ| = {worst:.1e} px");
     }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `--backend wgpu` on a machine without a usable driver: one clear line naming what to
+/// install, exit status 1, no panic. The machine's drivers are hidden from this one process:
+/// every Vulkan driver through the loader's selection filter, and Mesa's GL through a
+/// nonexistent EGL vendor file (wgpu falls back to GL when Vulkan has nothing).
+#[cfg(all(feature = "wgpu", target_os = "linux"))]
+#[test]
+fn wgpu_without_a_driver_is_a_clear_error() {
+    let dir = scratch("nodriver");
+    let err = fails(
+        deepmorph()
+            .args(["demo", "--size", "32", "-q", "-o"])
+            .arg(dir.join("out"))
+            .args(&TINY[..6])
+            .args(["--backend", "wgpu"])
+            .env("VK_LOADER_DRIVERS_SELECT", "no-such-driver*")
+            .env("__EGL_VENDOR_LIBRARY_FILENAMES", dir.join("none.json")),
+    );
+    assert!(err.contains("apt-get install mesa-vulkan-drivers libvulkan1"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -17,9 +17,33 @@ macro_rules! on_each_backend {
         $crate::on_each_cpu_backend!($($name),*);
         #[cfg(feature = "wgpu")]
         mod wgpu {
-            $( #[test] fn $name() { super::$name(deepmorph::Backend::Wgpu) } )*
+            $(
+                #[test]
+                fn $name() {
+                    match $crate::common::wgpu_unavailable() {
+                        None => super::$name(deepmorph::Backend::Wgpu),
+                        Some(why) => eprintln!("skipped on wgpu: {why}"),
+                    }
+                }
+            )*
         }
     };
+}
+
+/// Why the wgpu tests cannot run on this machine (no Vulkan/Metal/DX12 driver), or `None`
+/// when they can. A user's `cargo test --features ndarray,flex,wgpu` then skips them with
+/// that reason printed; CI sets `DEEPMORPH_REQUIRE_WGPU=1`, which turns a missing driver into
+/// a failure, so the parity suite can never be skipped there unnoticed.
+pub fn wgpu_unavailable() -> Option<String> {
+    static WHY: std::sync::OnceLock<Option<String>> = std::sync::OnceLock::new();
+    WHY.get_or_init(|| match Backend::Wgpu.device() {
+        Ok(_) => None,
+        Err(e) if std::env::var_os("DEEPMORPH_REQUIRE_WGPU").is_some() => {
+            panic!("DEEPMORPH_REQUIRE_WGPU is set, but {e}")
+        }
+        Err(e) => Some(e.to_string()),
+    })
+    .clone()
 }
 
 /// Like [`on_each_backend`] for float64 tests: CPU backends only (wgpu has no float64).
