@@ -1,5 +1,6 @@
 //! One full iPALM sweep (all `k`, SPEC §6) of the RGB model with `K = 15` at 64², 128² and
-//! 256² on each compiled CPU backend, float32, safeguard on (the CLI default).
+//! 256² on each compiled backend (wgpu too with `--features wgpu`), float32, safeguard on
+//! (the CLI default).
 //!
 //! The state is a mid-run one: the demo pair after a few sweeps at the benchmarked size, so
 //! the deformations are non-trivial and backtracking behaves as in a real run. Each timed

@@ -51,22 +51,7 @@ impl RgbImage {
     ///
     /// [`Error::Image`] naming the file if it cannot be read or decoded.
     pub fn load(path: &Path) -> Result<Self> {
-        let decoded = image::ImageReader::open(path)
-            .map_err(|e| Error::Io {
-                path: path.to_path_buf(),
-                source: e,
-            })?
-            .with_guessed_format()
-            .map_err(|e| Error::Io {
-                path: path.to_path_buf(),
-                source: e,
-            })?
-            .decode()
-            .map_err(|e| Error::Image {
-                path: path.to_path_buf(),
-                source: e,
-            })?;
-        Ok(Self::from_dynamic(&decoded))
+        Ok(Self::from_dynamic(&decode_image(path)?))
     }
 
     fn from_dynamic(img: &image::DynamicImage) -> Self {
@@ -174,6 +159,28 @@ impl RgbImage {
             .collect();
         Self::new(h, w, data)
     }
+}
+
+/// Reads and decodes an image file in any format the `image` crate decodes here, guessing
+/// the format from the contents.
+///
+/// # Errors
+///
+/// [`Error::Io`] or [`Error::Image`] naming the file.
+pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
+    let io_error = |source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    image::ImageReader::open(path)
+        .map_err(io_error)?
+        .with_guessed_format()
+        .map_err(io_error)?
+        .decode()
+        .map_err(|source| Error::Image {
+            path: path.to_path_buf(),
+            source,
+        })
 }
 
 /// `[0, 1]` → `0..=255`, rounded.

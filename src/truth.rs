@@ -18,7 +18,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::io::write_atomically;
+use crate::io::{decode_image, write_atomically};
 
 /// The `.flo` tag: the float32 202021.25, whose little-endian bytes spell `PIEH`.
 const FLO_TAG: &[u8; 4] = b"PIEH";
@@ -124,21 +124,7 @@ impl Correspondence {
     ///
     /// If the file is unreadable or not a 16-bit grey image.
     pub fn read_disparity(path: &Path) -> Result<Self> {
-        let decoded = image::ImageReader::open(path)
-            .map_err(|e| Error::Io {
-                path: path.to_path_buf(),
-                source: e,
-            })?
-            .with_guessed_format()
-            .map_err(|e| Error::Io {
-                path: path.to_path_buf(),
-                source: e,
-            })?
-            .decode()
-            .map_err(|e| Error::Image {
-                path: path.to_path_buf(),
-                source: e,
-            })?;
+        let decoded = decode_image(path)?;
         let grey = decoded.as_luma16().ok_or_else(|| Error::Format {
             path: path.to_path_buf(),
             detail: format!(

@@ -10,12 +10,8 @@ use assert_cmd::Command;
 use deepmorph::io::{RgbImage, write_png};
 use deepmorph::output::load_deformations;
 
-/// A fresh, empty scratch directory for one test.
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("deepmorph-cli-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch("cli", name)
 }
 
 fn deepmorph() -> Command {
@@ -333,7 +329,10 @@ fn wgpu_without_a_driver_is_a_clear_error() {
             .env("VK_LOADER_DRIVERS_SELECT", "no-such-driver*")
             .env("__EGL_VENDOR_LIBRARY_FILENAMES", dir.join("none.json")),
     );
-    assert!(err.contains("apt-get install mesa-vulkan-drivers libvulkan1"), "{err}");
+    assert!(
+        err.contains("apt-get install mesa-vulkan-drivers libvulkan1"),
+        "{err}"
+    );
     assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }

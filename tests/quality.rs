@@ -9,11 +9,10 @@ use std::path::{Path, PathBuf};
 use assert_cmd::Command;
 use deepmorph::metrics::Metrics;
 
+mod common;
+
 fn scratch(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("deepmorph-quality-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+    common::scratch("quality", name)
 }
 
 fn deepmorph() -> Command {
@@ -33,6 +32,18 @@ fn shared_image(name: &str) -> Option<PathBuf> {
         );
         None
     }
+}
+
+/// `deepmorph eval OUT --truth TRUTH`, which must succeed.
+fn eval_against(out: &Path, truth: &Path) {
+    deepmorph()
+        .arg("eval")
+        .arg(out)
+        .arg("--truth")
+        .arg(truth)
+        .args(["--backend", "flex", "-q"])
+        .assert()
+        .success();
 }
 
 fn metrics(dir: &Path) -> Metrics {
@@ -81,14 +92,7 @@ fn synthetic_pair_is_recovered_and_a_wrong_map_scores_badly() {
     assert!(at_end.endpoint_error.is_none());
     assert_eq!(at_end.composed.folded_share, 0.0);
 
-    deepmorph()
-        .arg("eval")
-        .arg(&out)
-        .arg("--truth")
-        .arg(pair.join("truth.flo"))
-        .args(["--backend", "flex", "-q"])
-        .assert()
-        .success();
+    eval_against(&out, &pair.join("truth.flo"));
     let m = metrics(&out);
     assert_eq!(
         m.deformations, at_end.deformations,
@@ -126,14 +130,7 @@ fn synthetic_pair_is_recovered_and_a_wrong_map_scores_badly() {
         .collect();
     assert_eq!(reversed.len(), 4 * k * 2 * h * w);
     std::fs::write(out.join("deformations.f32"), reversed).unwrap();
-    deepmorph()
-        .arg("eval")
-        .arg(&out)
-        .arg("--truth")
-        .arg(pair.join("truth.flo"))
-        .args(["--backend", "flex", "-q"])
-        .assert()
-        .success();
+    eval_against(&out, &pair.join("truth.flo"));
     let wrong = metrics(&out).endpoint_error.unwrap();
     assert!(
         wrong.mean > epe.identity_mean,

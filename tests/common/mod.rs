@@ -147,6 +147,14 @@ impl Golden {
     }
 }
 
+/// A fresh, empty scratch directory for one test (`group` and `name` keep tests apart).
+pub fn scratch(group: &str, name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("deepmorph-{group}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
 /// The device of `backend` in `precision`, with autodiff enabled when asked.
 pub fn device(backend: Backend, precision: Precision, autodiff: bool) -> Device {
     let device = backend
