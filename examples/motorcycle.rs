@@ -17,8 +17,8 @@ use std::time::Instant;
 use anyhow::Result;
 use clap::Parser;
 use deepmorph::io::RgbImage;
-use deepmorph::metrics::Metrics;
-use deepmorph::multilevel::{Multilevel, MultilevelConfig};
+use deepmorph::metrics::{Metrics, compose};
+use deepmorph::multilevel::{Multilevel, MultilevelConfig, fit_size};
 use deepmorph::observe::EnergyLog;
 use deepmorph::truth::Correspondence;
 use deepmorph::{Backend, Grid, Precision};
@@ -58,11 +58,7 @@ fn main() -> Result<()> {
     );
     let truth = Correspondence::load(&dir.join("disparity_a.png"))?;
 
-    // Longest side `max_side`, both sides multiples of 2^(levels−1).
-    let factor = 1usize << (args.levels - 1);
-    let scale = args.max_side as f64 / a.height().max(a.width()) as f64;
-    let round = |n: usize| ((n as f64 * scale / factor as f64).round() as usize).max(4) * factor;
-    let (h, w) = (round(a.height()), round(a.width()));
+    let (h, w) = fit_size(a.height(), a.width(), args.max_side, args.levels);
 
     let backend = Backend::default_compiled().expect("a backend is compiled in");
     let device = backend.device_for(Precision::F32)?.autodiff();
@@ -99,12 +95,15 @@ fn main() -> Result<()> {
     let frames = morph.state.frames();
     let k = args.steps;
     let endpoints = (frames.clone().narrow(0, 0, 1), frames.narrow(0, k, 1));
+    let deformations = morph.state.deformations();
+    let composed = compose(&morph.grid, deformations.clone());
     let metrics = Metrics::compute(
         &morph.grid,
-        morph.state.deformations(),
+        deformations,
+        composed,
         endpoints,
         &log.records,
-        Some((&truth, "disparity_a.png".into())),
+        Some((&truth, "disparity_a.png")),
     )?;
     print!("{metrics}");
     println!("solver time {seconds:.1} s");

@@ -13,7 +13,7 @@ use burn::tensor::{Device, Tensor};
 use crate::backend::Precision;
 use crate::error::{Error, Result};
 use crate::grid::Grid;
-use crate::io::RgbImage;
+use crate::io::{RgbImage, read_bytes};
 use crate::metrics::{Metrics, compose};
 use crate::observe::EnergyLog;
 use crate::output::{CONFIG, RunRecord, frame_name, load_deformations};
@@ -41,15 +41,11 @@ impl MorphFolder {
     /// [`Error::Io`] or [`Error::Format`] naming the missing or malformed file, or a
     /// mismatch between the files (sizes, number of steps).
     pub fn read(dir: &Path, device: &Device) -> Result<Self> {
-        let read = |name: &str| {
-            let path = dir.join(name);
-            std::fs::read(&path).map_err(|source| Error::Io { path, source })
-        };
         let format = |name: &str, detail: String| Error::Format {
             path: dir.join(name),
             detail,
         };
-        let record: RunRecord = serde_json::from_slice(&read(CONFIG)?)
+        let record: RunRecord = serde_json::from_slice(&read_bytes(&dir.join(CONFIG))?)
             .map_err(|e| format(CONFIG, format!("not a deepmorph run record: {e}")))?;
         // The deformations' grid, not necessarily the working size: an interrupted morph
         // writes the level it reached.
@@ -82,7 +78,7 @@ impl MorphFolder {
         };
         let endpoints = (frame(0)?, frame(k)?);
 
-        let csv = String::from_utf8_lossy(&read("energy.csv")?).into_owned();
+        let csv = String::from_utf8_lossy(&read_bytes(&dir.join("energy.csv"))?).into_owned();
         let energy = EnergyLog::from_csv(&csv).map_err(|e| format("energy.csv", e))?;
         Ok(Self {
             record,
@@ -98,15 +94,21 @@ impl MorphFolder {
         compose(&self.grid, self.deformations.clone())
     }
 
-    /// Every quality number; with `truth`, also the endpoint error of `Φ` against it.
+    /// Every quality number of the folder's morph, `composed` being its [`composed`](Self::composed)
+    /// map; with `truth` (and its name), also the endpoint error of `Φ` against it.
     ///
     /// # Errors
     ///
     /// If a value is NaN.
-    pub fn metrics(&self, truth: Option<(&Correspondence, String)>) -> Result<Metrics> {
+    pub fn metrics(
+        &self,
+        composed: Tensor<4>,
+        truth: Option<(&Correspondence, &str)>,
+    ) -> Result<Metrics> {
         Metrics::compute(
             &self.grid,
             self.deformations.clone(),
+            composed,
             self.endpoints.clone(),
             &self.energy.records,
             truth,

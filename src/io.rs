@@ -161,6 +161,18 @@ impl RgbImage {
     }
 }
 
+/// The bytes of a file.
+///
+/// # Errors
+///
+/// [`Error::Io`] naming the file.
+pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+    fs::read(path).map_err(|source| Error::Io {
+        path: path.to_path_buf(),
+        source,
+    })
+}
+
 /// Reads and decodes an image file in any format the `image` crate decodes here, guessing
 /// the format from the contents.
 ///

@@ -10,7 +10,7 @@ use clap::{Args, Parser, Subcommand};
 use deepmorph::eval::MorphFolder;
 use deepmorph::io::{RgbImage, write_atomically, write_png};
 use deepmorph::metrics::Metrics;
-use deepmorph::multilevel::{Multilevel, MultilevelConfig, Termination};
+use deepmorph::multilevel::{Multilevel, MultilevelConfig, Termination, fit_size};
 use deepmorph::observe::{EnergyLog, Progress, Verbosity};
 use deepmorph::optim::ipalm::IpalmConfig;
 use deepmorph::output::{
@@ -271,10 +271,7 @@ fn working_size(
             4 * factor
         );
     }
-    let (h, w) = (a.height() as f64, a.width() as f64);
-    let scale = (max_side as f64 / h.max(w)).min(1.0);
-    let round = |v: f64| (((v * scale) / factor as f64).round() as usize).max(4) * factor;
-    Ok((round(h), round(w)))
+    Ok(fit_size(a.height(), a.width(), max_side, levels))
 }
 
 fn check_levels(levels: usize) -> Result<()> {
@@ -311,8 +308,9 @@ fn eval(dir: &Path, truth: Option<&Path>, backend: Option<Backend>, quiet: bool)
     let truth = truth
         .map(|path| Correspondence::load(path).map(|t| (t, path.display().to_string())))
         .transpose()?;
-    let metrics = folder.metrics(truth.as_ref().map(|(t, name)| (t, name.clone())))?;
-    save_composed(dir, folder.composed())?;
+    let composed = folder.composed();
+    save_composed(dir, composed.clone())?;
+    let metrics = folder.metrics(composed, truth.as_ref().map(|(t, name)| (t, name.as_str())))?;
     write_metrics(dir, &metrics)?;
     if !quiet {
         print!("{metrics}");
@@ -478,8 +476,9 @@ fn morph(
     write_atomically(&out.join(CONFIG), |w| w.write_all(&json))?;
     // The same numbers `deepmorph eval` computes, from the files just written.
     let folder = MorphFolder::read(&out, &backend.device_for(precision)?)?;
-    save_composed(&out, folder.composed())?;
-    let metrics = folder.metrics(None)?;
+    let composed = folder.composed();
+    save_composed(&out, composed.clone())?;
+    let metrics = folder.metrics(composed, None)?;
     write_metrics(&out, &metrics)?;
     if !args.quiet {
         let last = log.records.last().map_or(f64::NAN, |r| r.energy);

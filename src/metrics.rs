@@ -76,9 +76,9 @@ impl JacobianStats {
     ///
     /// If a value is NaN.
     pub fn each(phi: Tensor<4>) -> Result<Vec<Self>> {
-        let [n, _, h, w] = phi.dims();
+        let [_, _, h, w] = phi.dims();
         let det = host_values(jacobian(phi).det())?;
-        Ok(det.chunks_exact(h * w).take(n).map(Self::of).collect())
+        Ok(det.chunks_exact(h * w).map(Self::of).collect())
     }
 }
 
@@ -129,15 +129,18 @@ pub struct LevelEnergy {
 pub fn level_energies(records: &[EnergyRecord]) -> Vec<LevelEnergy> {
     let mut out: Vec<LevelEnergy> = Vec::new();
     for r in records {
-        let (regularizer, data) = (r.regularizer, r.data);
         let entry = LevelEnergy {
             level: r.level,
             size: [r.height, r.width],
             sweeps: r.sweep,
             energy: r.energy,
-            regularizer,
-            data,
-            data_share: if r.energy > 0.0 { data / r.energy } else { 0.0 },
+            regularizer: r.regularizer,
+            data: r.data,
+            data_share: if r.energy > 0.0 {
+                r.data / r.energy
+            } else {
+                0.0
+            },
         };
         match out.last_mut() {
             Some(last) if last.level == r.level => *last = entry,
@@ -207,10 +210,11 @@ pub struct Metrics {
 }
 
 impl Metrics {
-    /// Every quality number of the deformations `φ_1..φ_K` `[K, 2, H, W]` between the frames
-    /// `(u_0, u_K)` (`[1, 3, H, W]` each), with the level energies of `records`; with
-    /// `truth` (and its name), also the endpoint error of `Φ` against it, resampled to the
-    /// working size ([`Correspondence::resampled`]).
+    /// Every quality number of the deformations `φ_1..φ_K` `[K, 2, H, W]`, their composition
+    /// `composed` (`[1, 2, H, W]`, from [`compose`]) and the frames `(u_0, u_K)`
+    /// (`[1, 3, H, W]` each), with the level energies of `records`; with `truth` (and its
+    /// name), also the endpoint error of `Φ` against it, resampled to the working size
+    /// ([`Correspondence::resampled`]).
     ///
     /// # Errors
     ///
@@ -218,22 +222,23 @@ impl Metrics {
     pub fn compute(
         grid: &Grid,
         deformations: Tensor<4>,
+        composed: Tensor<4>,
         (u_first, u_last): (Tensor<4>, Tensor<4>),
         records: &[EnergyRecord],
-        truth: Option<(&Correspondence, String)>,
+        truth: Option<(&Correspondence, &str)>,
     ) -> Result<Self> {
         let (h, w) = (grid.height(), grid.width());
-        let composed = compose(grid, deformations.clone());
         let phi = host_values(composed.clone())?;
-        let identity = host_values(grid.identity(1))?;
-        let displacement: Vec<f64> = phi.iter().zip(&identity).map(|(p, i)| p - i).collect();
-        let (endpoint_error, truth) = match truth {
-            Some((truth, name)) => (
-                Some(truth.resampled(h, w).endpoint_error(&phi)?),
-                Some(name),
-            ),
-            None => (None, None),
-        };
+        // Id at flat index p of [2, H, W]: the row p / W in the first half, the column p % W.
+        let identity = |p: usize| if p < h * w { p / w } else { p % w } as f64;
+        let displacement: Vec<f64> = phi
+            .iter()
+            .enumerate()
+            .map(|(p, v)| v - identity(p))
+            .collect();
+        let endpoint_error = truth
+            .map(|(truth, _)| truth.resampled(h, w).endpoint_error(&phi))
+            .transpose()?;
         Ok(Self {
             size: [h, w],
             deformations: JacobianStats::each(deformations)?,
@@ -242,7 +247,7 @@ impl Metrics {
             levels: level_energies(records),
             warp_consistency: WarpConsistency::of(grid, u_first, u_last, composed)?,
             endpoint_error,
-            truth,
+            truth: truth.map(|(_, name)| name.to_string()),
         })
     }
 }

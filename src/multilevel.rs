@@ -105,6 +105,17 @@ impl MultilevelConfig {
     }
 }
 
+/// The working size of a `height × width` input on `levels` levels (`levels ≥ 1`): scaled,
+/// never up, so that the longer side is at most `max_side`, then each side rounded to a
+/// multiple of `2^(levels−1)` and at least 4 of those (SPEC §7 needs both; bringing the
+/// inputs to this size is outside the model).
+pub fn fit_size(height: usize, width: usize, max_side: usize, levels: usize) -> (usize, usize) {
+    let factor = 1usize << (levels - 1);
+    let scale = (max_side as f64 / height.max(width) as f64).min(1.0);
+    let round = |v: usize| ((v as f64 * scale / factor as f64).round() as usize).max(4) * factor;
+    (round(height), round(width))
+}
+
 /// What an observer sees after each sweep.
 #[derive(Debug)]
 pub struct SweepEvent<'a> {

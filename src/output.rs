@@ -11,7 +11,7 @@ use image::{Delay, Frame, Rgb, RgbImage as Rgb8};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::io::{RgbImage, host_values, to_byte, write_atomically, write_png};
+use crate::io::{RgbImage, host_values, read_bytes, to_byte, write_atomically, write_png};
 
 /// The name of frame `k` of `0..=k_max`: `frame_00.png`, or wider when `K ≥ 100`.
 pub fn frame_name(k: usize, k_max: usize) -> String {
@@ -340,17 +340,11 @@ pub fn load_deformations(dir: &Path) -> Result<([usize; 4], Vec<f32>)> {
 /// If a file is missing or malformed.
 pub fn load_field(header_path: &Path) -> Result<([usize; 4], Vec<f32>)> {
     let dir = header_path.parent().unwrap_or(Path::new("."));
-    let read = |p: &Path| {
-        std::fs::read(p).map_err(|e| Error::Io {
-            path: p.to_path_buf(),
-            source: e,
-        })
-    };
     let malformed = |detail: String| Error::Shape {
         op: "load_deformations",
         detail,
     };
-    let header: DeformationsHeader = serde_json::from_slice(&read(header_path)?)
+    let header: DeformationsHeader = serde_json::from_slice(&read_bytes(header_path)?)
         .map_err(|e| malformed(format!("{}: {e}", header_path.display())))?;
     if header.format != "deepmorph-deformations" || header.version != 1 || header.dtype != "f32le" {
         return Err(malformed(format!(
@@ -361,7 +355,7 @@ pub fn load_field(header_path: &Path) -> Result<([usize; 4], Vec<f32>)> {
             header.dtype
         )));
     }
-    let bytes = read(&dir.join(&header.data))?;
+    let bytes = read_bytes(&dir.join(&header.data))?;
     let count: usize = header.shape.iter().product();
     if bytes.len() != 4 * count {
         return Err(malformed(format!(

@@ -18,7 +18,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::io::{decode_image, write_atomically};
+use crate::io::{decode_image, read_bytes, write_atomically};
 
 /// The `.flo` tag: the float32 202021.25, whose little-endian bytes spell `PIEH`.
 const FLO_TAG: &[u8; 4] = b"PIEH";
@@ -146,10 +146,7 @@ impl Correspondence {
     ///
     /// If the file is unreadable, has no `PIEH` tag, an implausible size, or is truncated.
     pub fn read_flo(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|e| Error::Io {
-            path: path.to_path_buf(),
-            source: e,
-        })?;
+        let bytes = read_bytes(path)?;
         let bad = |detail: String| Error::Format {
             path: path.to_path_buf(),
             detail,

@@ -7,7 +7,10 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use assert_cmd::Command;
+use common::fails;
+use deepmorph::Backend;
 use deepmorph::io::{RgbImage, write_png};
+use deepmorph::observe::EnergyLog;
 use deepmorph::output::load_deformations;
 
 fn scratch(name: &str) -> PathBuf {
@@ -44,21 +47,6 @@ const TINY: [&str; 8] = [
     "--backend",
     "flex",
 ];
-
-/// Runs a command that must fail; returns its stderr.
-fn fails(cmd: &mut Command) -> String {
-    let out = cmd.output().unwrap();
-    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert!(
-        !out.status.success(),
-        "expected failure, got success; stderr: {stderr}"
-    );
-    assert!(
-        !stderr.contains("panicked"),
-        "panic instead of an error: {stderr}"
-    );
-    stderr
-}
 
 #[test]
 fn demo_writes_every_output() {
@@ -244,25 +232,19 @@ fn interrupt_writes_outputs() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// The backends compiled into this build that can run here, the reference (ndarray, else
-/// flex) first.
-fn compiled_backends() -> Vec<&'static str> {
-    let wgpu = cfg!(feature = "wgpu")
-        && match common::wgpu_unavailable() {
-            None => true,
-            Some(why) => {
-                eprintln!("skipped on wgpu: {why}");
-                false
-            }
-        };
-    [
-        (cfg!(feature = "ndarray"), "ndarray"),
-        (cfg!(feature = "flex"), "flex"),
-        (wgpu, "wgpu"),
-    ]
-    .into_iter()
-    .filter_map(|(on, name)| on.then_some(name))
-    .collect()
+/// The backends compiled into this build that can run here, the reference first.
+fn compiled_backends() -> Vec<Backend> {
+    let reference = common::reference_backend();
+    let usable = |&b: &Backend| {
+        b != Backend::Wgpu
+            || common::wgpu_unavailable()
+                .inspect(|why| eprintln!("skipped on wgpu: {why}"))
+                .is_none()
+    };
+    let others = Backend::compiled().into_iter().filter(|&b| b != reference);
+    std::iter::once(reference)
+        .chain(others.filter(usable))
+        .collect()
 }
 
 /// Backend parity end to end: the tiny demo (2 levels × 3 sweeps) on every compiled backend
@@ -272,24 +254,28 @@ fn compiled_backends() -> Vec<&'static str> {
 #[test]
 fn every_backend_gives_the_same_morph() {
     let dir = scratch("backends");
-    let run = |backend: &str| {
-        let out = dir.join(backend);
+    let run = |backend: Backend| {
+        let out = dir.join(backend.name());
         deepmorph()
             .args(["demo", "--size", "32", "-q", "-o"])
             .arg(&out)
             .args(&TINY[..6])
-            .args(["--backend", backend])
+            .args(["--backend", backend.name()])
             .assert()
             .success();
         let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
-        let last = csv.lines().last().unwrap().split(',').nth(4).unwrap();
-        let energy: f64 = last.parse().unwrap();
+        let energy = EnergyLog::from_csv(&csv)
+            .unwrap()
+            .records
+            .last()
+            .unwrap()
+            .energy;
         let (_, phi) = load_deformations(&out).unwrap();
         (energy, phi)
     };
     let backends = compiled_backends();
     let (e_ref, phi_ref) = run(backends[0]);
-    for backend in &backends[1..] {
+    for &backend in &backends[1..] {
         let (e, phi) = run(backend);
         let rel = (e - e_ref).abs() / e_ref;
         assert!(

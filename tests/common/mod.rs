@@ -147,12 +147,37 @@ impl Golden {
     }
 }
 
+/// The backend the others are compared with: ndarray (the design card's CPU backend) when
+/// compiled, else flex.
+pub fn reference_backend() -> Backend {
+    if cfg!(feature = "ndarray") {
+        Backend::NdArray
+    } else {
+        Backend::Flex
+    }
+}
+
 /// A fresh, empty scratch directory for one test (`group` and `name` keep tests apart).
 pub fn scratch(group: &str, name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("deepmorph-{group}-{}-{name}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();
     dir
+}
+
+/// Runs a command that must fail; returns its stderr.
+pub fn fails(cmd: &mut assert_cmd::Command) -> String {
+    let out = cmd.output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert!(
+        !out.status.success(),
+        "expected failure, got success; stderr: {stderr}"
+    );
+    assert!(
+        !stderr.contains("panicked"),
+        "panic instead of an error: {stderr}"
+    );
+    stderr
 }
 
 /// The device of `backend` in `precision`, with autodiff enabled when asked.
