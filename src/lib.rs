@@ -46,6 +46,7 @@ pub mod sobel;
 pub mod stencil;
 pub mod synthetic;
 pub mod truth;
+pub mod vgg;
 pub mod warp;
 
 pub use backend::{Backend, Precision};

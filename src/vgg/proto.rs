@@ -1,0 +1,301 @@
+//! Just enough of the protobuf wire format to read an ONNX model's convolution weights at run
+//! time: the graph's nodes (operator, inputs) and initializers (name, dims, element type,
+//! data). Everything is borrowed from the file's bytes; a truncated or corrupt file is an
+//! error that says where, never a panic.
+
+/// A field's payload.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Value<'a> {
+    /// Wire type 0.
+    Varint(u64),
+    /// Wire type 1.
+    Fixed64,
+    /// Wire type 2: bytes, string, sub-message or packed repeated field.
+    Bytes(&'a [u8]),
+    /// Wire type 5.
+    Fixed32(u32),
+}
+
+/// Iterates over the `(field number, value)` pairs of one message.
+pub(crate) struct Fields<'a> {
+    bytes: &'a [u8],
+    at: usize,
+}
+
+impl<'a> Fields<'a> {
+    pub(crate) fn new(bytes: &'a [u8]) -> Self {
+        Self { bytes, at: 0 }
+    }
+
+    fn varint(&mut self) -> Result<u64, String> {
+        let mut v = 0u64;
+        for shift in (0..64).step_by(7) {
+            let Some(&b) = self.bytes.get(self.at) else {
+                return Err(format!(
+                    "truncated: a number runs past the end at byte {}",
+                    self.at
+                ));
+            };
+            self.at += 1;
+            v |= u64::from(b & 0x7f) << shift;
+            if b & 0x80 == 0 {
+                return Ok(v);
+            }
+        }
+        Err(format!(
+            "corrupt: a number longer than 10 bytes at byte {}",
+            self.at
+        ))
+    }
+
+    fn take(&mut self, n: usize) -> Result<&'a [u8], String> {
+        let left = self.bytes.len() - self.at;
+        if n > left {
+            return Err(format!(
+                "truncated: a field of {n} bytes at byte {} has only {left} bytes left",
+                self.at
+            ));
+        }
+        let s = &self.bytes[self.at..self.at + n];
+        self.at += n;
+        Ok(s)
+    }
+
+    fn next_field(&mut self) -> Result<(u32, Value<'a>), String> {
+        let key = self.varint()?;
+        let (field, wire) = ((key >> 3) as u32, key & 7);
+        let value = match wire {
+            0 => Value::Varint(self.varint()?),
+            1 => {
+                self.take(8)?;
+                Value::Fixed64
+            }
+            2 => {
+                let n = self.varint()?;
+                Value::Bytes(self.take(usize::try_from(n).unwrap_or(usize::MAX))?)
+            }
+            5 => Value::Fixed32(u32::from_le_bytes(
+                self.take(4)?.try_into().expect("4 bytes"),
+            )),
+            w => {
+                return Err(format!(
+                    "corrupt: wire type {w} of field {field} at byte {} (not a protobuf file?)",
+                    self.at
+                ));
+            }
+        };
+        Ok((field, value))
+    }
+}
+
+impl<'a> Iterator for Fields<'a> {
+    type Item = Result<(u32, Value<'a>), String>;
+
+    fn next(&mut self) -> Option<Self::Item> {
+        (self.at < self.bytes.len()).then(|| {
+            let r = self.next_field();
+            if r.is_err() {
+                self.at = self.bytes.len();
+            }
+            r
+        })
+    }
+}
+
+/// A node of the graph: operator and input names.
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Node {
+    pub op_type: String,
+    pub inputs: Vec<String>,
+}
+
+/// An initializer (a constant tensor of the graph).
+#[derive(Clone, Debug, Default)]
+pub(crate) struct Initializer<'a> {
+    pub name: String,
+    pub dims: Vec<usize>,
+    /// ONNX `TensorProto.DataType` (1 = float, 10 = float16, 11 = double, 16 = bfloat16).
+    pub data_type: i32,
+    pub raw: Option<&'a [u8]>,
+    pub floats: Vec<f32>,
+    pub external: bool,
+}
+
+impl Initializer<'_> {
+    /// The values as `f32`, checked against the dims.
+    pub(crate) fn values(&self) -> Result<Vec<f32>, String> {
+        if self.external {
+            return Err(format!(
+                "`{}` is stored in an external data file; save the model with its weights \
+                 inside (onnx.save(model, path, save_as_external_data=False))",
+                self.name
+            ));
+        }
+        let count: usize = self.dims.iter().product();
+        let values: Vec<f32> = match (self.data_type, self.raw) {
+            (1, Some(raw)) => raw
+                .chunks_exact(4)
+                .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes")))
+                .collect(),
+            (1, None) => self.floats.clone(),
+            (11, Some(raw)) => raw
+                .chunks_exact(8)
+                .map(|c| f64::from_le_bytes(c.try_into().expect("8 bytes")) as f32)
+                .collect(),
+            (10, Some(raw)) => raw
+                .chunks_exact(2)
+                .map(|c| half_to_f32(u16::from_le_bytes([c[0], c[1]])))
+                .collect(),
+            (16, Some(raw)) => raw
+                .chunks_exact(2)
+                .map(|c| f32::from_bits(u32::from(u16::from_le_bytes([c[0], c[1]])) << 16))
+                .collect(),
+            (t, _) => {
+                return Err(format!(
+                    "`{}` has ONNX element type {t}; only float32, float16, bfloat16 and \
+                     float64 (as raw data) are read",
+                    self.name
+                ));
+            }
+        };
+        if values.len() != count {
+            return Err(format!(
+                "`{}` holds {} values for dims {:?} ({count} expected): truncated or corrupt",
+                self.name,
+                values.len(),
+                self.dims
+            ));
+        }
+        Ok(values)
+    }
+}
+
+/// IEEE half precision to `f32`.
+fn half_to_f32(h: u16) -> f32 {
+    let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
+    let exp = i32::from((h >> 10) & 0x1f);
+    let frac = f32::from(h & 0x3ff);
+    sign * match exp {
+        0 => frac * 2f32.powi(-24),
+        31 if frac == 0.0 => f32::INFINITY,
+        31 => f32::NAN,
+        e => (1.0 + frac / 1024.0) * 2f32.powi(e - 15),
+    }
+}
+
+/// The parts of an ONNX graph the weight loader needs.
+#[derive(Debug, Default)]
+pub(crate) struct Graph<'a> {
+    pub nodes: Vec<Node>,
+    pub initializers: Vec<Initializer<'a>>,
+}
+
+fn string(v: Value<'_>) -> Result<String, String> {
+    match v {
+        Value::Bytes(b) => Ok(String::from_utf8_lossy(b).into_owned()),
+        _ => Err("corrupt: a string field with a non-string wire type".into()),
+    }
+}
+
+fn payload<'a>(v: Value<'a>, what: &str) -> Result<&'a [u8], String> {
+    match v {
+        Value::Bytes(b) => Ok(b),
+        _ => Err(format!("corrupt: {what} is not a length-delimited field")),
+    }
+}
+
+/// Parses `ModelProto.graph` (field 7) of an ONNX file.
+pub(crate) fn parse_model(bytes: &[u8]) -> Result<Graph<'_>, String> {
+    let mut graph = None;
+    for field in Fields::new(bytes) {
+        if let (7, v) = field? {
+            graph = Some(payload(v, "the graph")?);
+        }
+    }
+    let graph = graph.ok_or("no ONNX graph in the file (not an ONNX model?)")?;
+    let mut out = Graph::default();
+    for field in Fields::new(graph) {
+        match field? {
+            (1, v) => out.nodes.push(parse_node(payload(v, "a node")?)?),
+            (5, v) => out
+                .initializers
+                .push(parse_tensor(payload(v, "an initializer")?)?),
+            _ => {}
+        }
+    }
+    Ok(out)
+}
+
+fn parse_node(b: &[u8]) -> Result<Node, String> {
+    let mut node = Node::default();
+    for field in Fields::new(b) {
+        match field? {
+            (1, v) => node.inputs.push(string(v)?),
+            (4, v) => node.op_type = string(v)?,
+            _ => {}
+        }
+    }
+    Ok(node)
+}
+
+fn parse_tensor(b: &[u8]) -> Result<Initializer<'_>, String> {
+    let mut t = Initializer::default();
+    for field in Fields::new(b) {
+        match field? {
+            (1, Value::Varint(d)) => t.dims.push(d as usize),
+            (1, Value::Bytes(packed)) => {
+                for d in Fields::packed_varints(packed)? {
+                    t.dims.push(d as usize);
+                }
+            }
+            (2, Value::Varint(d)) => t.data_type = d as i32,
+            (4, Value::Fixed32(f)) => t.floats.push(f32::from_bits(f)),
+            (4, Value::Bytes(packed)) => t.floats.extend(
+                packed
+                    .chunks_exact(4)
+                    .map(|c| f32::from_le_bytes(c.try_into().expect("4 bytes"))),
+            ),
+            (8, v) => t.name = string(v)?,
+            (9, v) => t.raw = Some(payload(v, "raw_data")?),
+            (14, Value::Varint(1)) => t.external = true,
+            _ => {}
+        }
+    }
+    Ok(t)
+}
+
+impl Fields<'_> {
+    fn packed_varints(b: &[u8]) -> Result<Vec<u64>, String> {
+        let mut f = Fields::new(b);
+        let mut out = Vec::new();
+        while f.at < b.len() {
+            out.push(f.varint()?);
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn half_precision_values() {
+        assert_eq!(half_to_f32(0x3c00), 1.0);
+        assert_eq!(half_to_f32(0xc000), -2.0);
+        assert_eq!(half_to_f32(0x3555), 0.333_251_95);
+        assert_eq!(half_to_f32(0x0001), 2f32.powi(-24));
+    }
+
+    #[test]
+    fn truncation_is_reported_with_its_position() {
+        // Field 7 (graph), length 10, but only 2 bytes follow.
+        let err = parse_model(&[0x3a, 10, 1, 2]).unwrap_err();
+        assert!(err.contains("truncated") && err.contains("byte 2"), "{err}");
+        let err = parse_model(b"hello, not protobuf").unwrap_err();
+        assert!(
+            err.contains("corrupt") || err.contains("truncated") || err.contains("no ONNX graph"),
+            "{err}"
+        );
+    }
+}
