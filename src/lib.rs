@@ -20,12 +20,15 @@
 //! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5).
 //! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6).
 //! - [`resample`]: bilinear resizing and prolongation (SPEC §7).
+//! - [`vgg`], [`deep`]: VGG19 imported from ONNX by burn-import, its run-time weights, and
+//!   the deep model's feature vectors `(η·u, τ·F/rms)` per level (SPEC §4).
 //! - [`metrics`], [`truth`], [`eval`], [`synthetic`]: quality numbers of a finished morph
 //!   (composed map, `det J`, energy split, warp consistency, endpoint error against ground
 //!   truth) and synthetic pairs with a known deformation.
 #![warn(missing_docs)]
 
 pub mod backend;
+pub mod deep;
 pub mod deformation;
 pub mod demo;
 pub mod energy;

@@ -7,18 +7,20 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
+use deepmorph::deep::{DeepConfig, DeepFeatures};
 use deepmorph::eval::MorphFolder;
 use deepmorph::io::{RgbImage, write_atomically, write_png};
 use deepmorph::metrics::Metrics;
-use deepmorph::multilevel::{Multilevel, MultilevelConfig, Termination, fit_size};
+use deepmorph::multilevel::{FeatureModel, Multilevel, MultilevelConfig, Termination, fit_size};
 use deepmorph::observe::{EnergyLog, Progress, Verbosity};
 use deepmorph::optim::ipalm::IpalmConfig;
 use deepmorph::output::{
-    CONFIG, METRICS, RunRecord, contact_sheet, output_names, save_composed, save_deformations,
-    write_frames, write_gif,
+    CONFIG, DeepRecord, METRICS, RunRecord, contact_sheet, output_names, save_composed,
+    save_deformations, write_frames, write_gif,
 };
 use deepmorph::synthetic::{Field, warped_pair};
 use deepmorph::truth::Correspondence;
+use deepmorph::vgg::Vgg19;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 #[derive(Parser)]
@@ -112,12 +114,12 @@ struct RunArgs {
     /// Weight 1/delta of the data term.
     #[arg(long, default_value_t = 1.0, allow_negative_numbers = true)]
     delta: f64,
-    /// Volume term weight lambda of W.
-    #[arg(long, default_value_t = 0.1, allow_negative_numbers = true)]
-    lambda: f64,
-    /// Strain term weight mu of W.
-    #[arg(long, default_value_t = 0.025, allow_negative_numbers = true)]
-    mu: f64,
+    /// Volume term weight lambda of W [default: 0.1; deep model: 0.002].
+    #[arg(long, allow_negative_numbers = true)]
+    lambda: Option<f64>,
+    /// Strain term weight mu of W [default: 0.025; deep model: 0.002].
+    #[arg(long, allow_negative_numbers = true)]
+    mu: Option<f64>,
     /// Edge sensitivity xi1 of the anisotropy.
     #[arg(long, default_value_t = 1000.0, allow_negative_numbers = true)]
     xi1: f64,
@@ -136,9 +138,27 @@ struct RunArgs {
     /// Run the paper's plain iPALM, without the energy safeguard of SPEC §6.
     #[arg(long)]
     no_safeguard: bool,
-    /// Model: only the RGB model is available in this build.
-    #[arg(long, default_value = "rgb", value_parser = ["rgb"])]
+    /// rgb: images compared by colour; deep: by VGG19 features (needs --vgg19; sizes are
+    /// rounded to multiples of 16, at most 5 levels).
+    #[arg(long, default_value = "rgb", value_parser = ["rgb", "deep"])]
     model: String,
+    /// VGG19 weights for the deep model: an ONNX file (torchvision export or ONNX model zoo)
+    /// or a safetensors file with torchvision key names.
+    #[arg(long, value_name = "FILE")]
+    vgg19: Option<PathBuf>,
+    /// Deep model: weight eta of the RGB channels inside the feature vector.
+    #[arg(long, default_value_t = 1e-6, allow_negative_numbers = true)]
+    eta: f64,
+    /// Deep model: RMS tau each level's VGG features are scaled to (SPEC §4).
+    #[arg(long, default_value_t = 0.5, allow_negative_numbers = true)]
+    feature_rms: f64,
+    /// Deep model: feature-only sweeps J_pre after each prolongation.
+    #[arg(long, default_value_t = 50)]
+    pre_sweeps: usize,
+    /// Refuse to start when the estimated peak memory exceeds this many GiB [default: the
+    /// memory available now].
+    #[arg(long, value_name = "GIB")]
+    max_memory: Option<f64>,
     /// Compute backend (flex, ndarray or wgpu, as compiled in).
     #[arg(long)]
     backend: Option<Backend>,
@@ -177,6 +197,60 @@ impl RunArgs {
 
     fn sweeps(&self) -> usize {
         self.sweeps.expect("resolved by with_defaults")
+    }
+
+    /// The model's own checks, before any image is read.
+    fn check_model(&self) -> Result<()> {
+        if self.deep() {
+            if self.vgg19.is_none() {
+                bail!(
+                    "--model deep needs VGG19 weights: --vgg19 FILE (an ONNX or safetensors \
+                     VGG19; see the README for where to get one)"
+                );
+            }
+            if self.levels() > 5 {
+                bail!(
+                    "--levels {} is out of range for --model deep: at most 5 (VGG19 has taps at \
+                     1, 1/2, 1/4, 1/8 and 1/16 of the input size)",
+                    self.levels()
+                );
+            }
+        } else if self.vgg19.is_some() {
+            bail!("--vgg19 is used only by --model deep");
+        }
+        Ok(())
+    }
+
+    fn deep(&self) -> bool {
+        self.model == "deep"
+    }
+
+    /// The SPEC §9 energy parameters of the chosen model, overridden by the flags given.
+    fn params(&self) -> EnergyParams {
+        let defaults = if self.deep() {
+            EnergyParams::deep()
+        } else {
+            EnergyParams::rgb()
+        };
+        EnergyParams {
+            lambda: self.lambda.unwrap_or(defaults.lambda),
+            mu: self.mu.unwrap_or(defaults.mu),
+            delta: self.delta,
+            sigma: self.sigma,
+            rho: self.rho,
+            xi1: self.xi1,
+            xi2: self.xi2,
+        }
+    }
+
+    /// The side multiple of the working size: `2^(levels−1)`, and 16 in the deep model
+    /// (VGG19's four max-pools must halve exactly).
+    fn size_levels(&self) -> usize {
+        if self.deep() {
+            self.levels().max(5)
+        } else {
+            self.levels()
+        }
     }
 }
 
@@ -224,7 +298,8 @@ fn run(cli: Cli) -> Result<()> {
             let run = run.with_defaults(PAPER);
             let image_a = RgbImage::load(&a)?;
             let image_b = RgbImage::load(&b)?;
-            let (h, w) = working_size(&image_a, size, max_side, run.levels())?;
+            run.check_model()?;
+            let (h, w) = working_size(&image_a, size, max_side, run.size_levels())?;
             let resize = |img: &RgbImage, name: &str| {
                 if (img.height(), img.width()) != (h, w) {
                     if !run.quiet {
@@ -244,7 +319,8 @@ fn run(cli: Cli) -> Result<()> {
         }
         Command::Demo { size, run } => {
             let run = run.with_defaults(DEMO);
-            working_size_fits(size, size, run.levels())?;
+            run.check_model()?;
+            working_size_fits(size, size, run.size_levels())?;
             (Vec::new(), deepmorph::demo::demo_pair(size), run, "demo")
         }
     };
@@ -287,7 +363,8 @@ fn working_size_fits(h: usize, w: usize, levels: usize) -> Result<()> {
     let factor = 1usize << (levels - 1);
     if h % factor != 0 || w % factor != 0 || h < 4 * factor || w < 4 * factor {
         bail!(
-            "--size {w}x{h} does not fit --levels {levels}: both sides must be multiples of {factor} and at least {}",
+            "--size {w}x{h} does not fit the pyramid: both sides must be multiples of {factor} \
+             (2^(levels-1), and 16 for the deep model) and at least {}",
             4 * factor
         );
     }
@@ -360,15 +437,7 @@ fn morph(
     args: &RunArgs,
 ) -> Result<()> {
     let backend = backend_or_default(args.backend)?;
-    let params = EnergyParams {
-        lambda: args.lambda,
-        mu: args.mu,
-        delta: args.delta,
-        sigma: args.sigma,
-        rho: args.rho,
-        xi1: args.xi1,
-        xi2: args.xi2,
-    };
+    let params = args.params();
     let config = MultilevelConfig {
         steps: args.steps(),
         levels: args.levels(),
@@ -388,6 +457,24 @@ fn morph(
     let device = backend.device_for(precision)?.autodiff();
     let grid = Grid::new(a.height(), a.width(), &device, precision.dtype())?;
     let (u_a, u_b) = (a.to_tensor(&grid)?, b.to_tensor(&grid)?);
+    let deep_config = DeepConfig {
+        eta: args.eta,
+        feature_rms: args.feature_rms,
+        pre_sweeps: args.pre_sweeps,
+    };
+    let model = match &args.vgg19 {
+        Some(path) if args.deep() => {
+            deep_config.validate().map_err(|e| anyhow::anyhow!("{e}"))?;
+            let vgg = Vgg19::load(path, &device)?;
+            FeatureModel::Deep(DeepFeatures::new(
+                &vgg,
+                u_a.clone(),
+                u_b.clone(),
+                deep_config,
+            )?)
+        }
+        _ => FeatureModel::Rgb,
+    };
 
     let interrupt = Arc::new(AtomicBool::new(false));
     {
@@ -409,7 +496,8 @@ fn morph(
     };
     if !args.quiet {
         eprintln!(
-            "{command}: {}x{} (WxH), K = {}, {} levels x {} sweeps, {} backend",
+            "{command}: {} model, {}x{} (WxH), K = {}, {} levels x {} sweeps, {} backend",
+            args.model,
             a.width(),
             a.height(),
             args.steps(),
@@ -422,15 +510,14 @@ fn morph(
     let mut progress = Progress::new(verbosity);
     let mut log = EnergyLog::default();
     let mut observers = (&mut progress, &mut log);
-    let morph = driver.run(&device, u_a, u_b, &mut observers, &interrupt)?;
+    let morph = driver.run_with(&device, u_a, u_b, &model, &mut observers, &interrupt)?;
     drop(progress);
     let seconds = started.elapsed().as_secs_f64();
 
     let frames = morph
-        .state
-        .f
-        .iter()
-        .map(|f| RgbImage::from_tensor(f.clone()))
+        .images()
+        .into_iter()
+        .map(RgbImage::from_tensor)
         .collect::<deepmorph::Result<Vec<_>>>()?;
     write_frames(&out, &frames)?;
     write_gif(&out.join("morph.gif"), &frames, args.pingpong, 3.0)?;
@@ -460,8 +547,8 @@ fn morph(
         levels: args.levels(),
         sweeps: args.sweeps(),
         delta: args.delta,
-        lambda: args.lambda,
-        mu: args.mu,
+        lambda: params.lambda,
+        mu: params.mu,
         sigma: args.sigma,
         rho: args.rho,
         xi1: args.xi1,
@@ -469,6 +556,16 @@ fn morph(
         beta: args.beta,
         safeguard: !args.no_safeguard,
         pingpong: args.pingpong,
+        deep: match (&model, &args.vgg19) {
+            (FeatureModel::Deep(deep), Some(path)) => Some(DeepRecord {
+                vgg19: path.display().to_string(),
+                eta: deep_config.eta,
+                feature_rms: deep_config.feature_rms,
+                pre_sweeps: deep_config.pre_sweeps,
+                tap_rms: deep.rms().to_vec(),
+            }),
+            _ => None,
+        },
         termination: termination.clone(),
         seconds,
     };

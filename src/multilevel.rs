@@ -1,12 +1,14 @@
-//! The coarse-to-fine driver (SPEC §7) for the RGB model: builds the pyramid, initialises
-//! the coarsest level, prolongates deformations and images, and runs `J` iPALM sweeps per
-//! level, reporting to an [`Observer`] after every sweep.
+//! The coarse-to-fine driver (SPEC §7): builds the pyramid, initialises the coarsest level,
+//! prolongates deformations and images (and, in the deep model, re-initialises the VGG
+//! channels and runs the `J_pre` feature-only sweeps), and runs `J` iPALM sweeps per level,
+//! reporting to an [`Observer`] after every sweep.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use burn::tensor::{Device, Tensor};
 
+use crate::deep::DeepFeatures;
 use crate::error::{Error, Result};
 use crate::grid::Grid;
 use crate::io::to_host;
@@ -116,6 +118,46 @@ pub fn fit_size(height: usize, width: usize, max_side: usize, levels: usize) -> 
     (round(height), round(width))
 }
 
+/// Which model's feature vectors a morph uses (SPEC §4).
+#[derive(Clone, Debug)]
+pub enum FeatureModel {
+    /// `f = u`.
+    Rgb,
+    /// `f = (η·u, τ·F/rms)` with the VGG taps of the inputs.
+    Deep(DeepFeatures),
+}
+
+impl FeatureModel {
+    /// The channel layout of the level whose grid is `1/2^downsampling` of the input.
+    ///
+    /// # Errors
+    ///
+    /// In the deep model, if no VGG tap has that size.
+    pub fn layout(&self, downsampling: usize) -> Result<FeatureLayout> {
+        match self {
+            Self::Rgb => Ok(FeatureLayout::rgb()),
+            Self::Deep(deep) => deep.layout(downsampling),
+        }
+    }
+
+    /// Feature-only sweeps after a prolongation (`J_pre`; 0 in the RGB model).
+    pub fn pre_sweeps(&self) -> usize {
+        match self {
+            Self::Rgb => 0,
+            Self::Deep(deep) => deep.config().pre_sweeps,
+        }
+    }
+}
+
+/// Which sweeps an event belongs to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// The deep model's feature-only sweeps after a prolongation (SPEC §7).
+    Features,
+    /// The joint sweeps (`J` per level).
+    Joint,
+}
+
 /// What an observer sees after each sweep.
 #[derive(Debug)]
 pub struct SweepEvent<'a> {
@@ -125,9 +167,12 @@ pub struct SweepEvent<'a> {
     pub levels: usize,
     /// The level's grid.
     pub grid: &'a Grid,
-    /// Sweep index on this level, 1-based (0 = the initial state).
+    /// Which sweeps: the joint ones or the deep model's feature-only ones before them.
+    pub phase: Phase,
+    /// Sweep index in this phase on this level, 1-based (0 = the state the phase starts
+    /// from; for [`Phase::Joint`] that is after any feature-only sweeps).
     pub sweep: usize,
-    /// Sweeps per level.
+    /// Sweeps of this phase per level.
     pub sweeps: usize,
     /// `E` after the sweep (with `a_k` recomputed, SPEC §10).
     pub energy: f64,
@@ -192,8 +237,22 @@ pub struct Morph {
     pub state: LevelState,
     /// `a_1..a_K` of the final frames, `[K, H, W]`.
     pub anisotropy: Tensor<3>,
+    /// The channel layout of `state.f` (the RGB part of a frame is `layout.rgb_part(f)`).
+    pub layout: FeatureLayout,
     /// Why it stopped.
     pub termination: Termination,
+}
+
+impl Morph {
+    /// The frames `u_0..u_K` as RGB images (SPEC §8: the RGB part, divided by `η` in the
+    /// deep model), each `[1, 3, H, W]`.
+    pub fn images(&self) -> Vec<Tensor<4>> {
+        self.state
+            .f
+            .iter()
+            .map(|f| self.layout.rgb_part(f.clone()))
+            .collect()
+    }
 }
 
 /// The multilevel driver of the RGB model.
@@ -233,6 +292,24 @@ impl Multilevel {
         observer: &mut dyn Observer,
         interrupt: &AtomicBool,
     ) -> Result<Morph> {
+        self.run_with(device, u_a, u_b, &FeatureModel::Rgb, observer, interrupt)
+    }
+
+    /// Like [`run`](Self::run), with the feature vectors of `model` (the deep model's
+    /// [`DeepFeatures`] must have been computed from the same `u_a`, `u_b`).
+    ///
+    /// # Errors
+    ///
+    /// As [`run`](Self::run); in the deep model also more than 5 levels (VGG19 has 5 taps).
+    pub fn run_with(
+        &self,
+        device: &Device,
+        u_a: Tensor<4>,
+        u_b: Tensor<4>,
+        model: &FeatureModel,
+        observer: &mut dyn Observer,
+        interrupt: &AtomicBool,
+    ) -> Result<Morph> {
         let cfg = &self.config;
         let [_, ca, h, w] = u_a.dims();
         if u_a.dims() != u_b.dims() || ca != 3 {
@@ -248,22 +325,50 @@ impl Multilevel {
         let sizes = cfg.level_sizes(h, w)?;
         let dtype = u_a.dtype();
         let full = Grid::new(h, w, device, dtype)?;
-        let layout = FeatureLayout::rgb();
         let started = Instant::now();
         let k = cfg.steps;
 
-        let mut previous: Option<(Grid, LevelState)> = None;
+        let mut previous: Option<(Grid, LevelState, FeatureLayout)> = None;
         for (level, &(lh, lw)) in sizes.iter().enumerate() {
+            let downsampling = sizes.len() - 1 - level;
+            let layout = model.layout(downsampling)?;
             let grid = Grid::new(lh, lw, device, dtype)?;
             let resize = Resize::new(&full, &grid);
-            let (f_a, f_b) = (resize.apply(u_a.clone()), resize.apply(u_b.clone()));
+            let (u_a_level, u_b_level) = (resize.apply(u_a.clone()), resize.apply(u_b.clone()));
+            let (f_a, f_b) = match model {
+                FeatureModel::Rgb => (u_a_level, u_b_level),
+                FeatureModel::Deep(deep) => {
+                    let (tap_a, tap_b) = deep.tap(downsampling)?;
+                    (deep.stack(u_a_level, tap_a), deep.stack(u_b_level, tap_b))
+                }
+            };
+            let prolongated = previous.is_some();
             let mut state = match previous.take() {
                 None => LevelState::initial(&grid, &layout, f_a, f_b, k)?,
-                Some((coarse, coarse_state)) => {
+                Some((coarse, coarse_state, coarse_layout)) => {
                     let up = Resize::new(&coarse, &grid);
                     let mut f = Vec::with_capacity(k + 1);
-                    f.push(f_a);
-                    f.extend(coarse_state.f[1..k].iter().map(|x| up.apply(x.clone())));
+                    f.push(f_a.clone());
+                    for (step, frame) in coarse_state.f[1..k].iter().enumerate() {
+                        let u = up.apply(coarse_layout.rgb_part(frame.clone()));
+                        f.push(match model {
+                            FeatureModel::Rgb => u,
+                            // SPEC §7: VGG channels from the convex combination of the
+                            // endpoints, η-scaled RGB from the prolongated images.
+                            FeatureModel::Deep(deep) => {
+                                let t = (step + 1) as f64 / k as f64;
+                                let features = f_a
+                                    .clone()
+                                    .narrow(1, 3, layout.channels() - 3)
+                                    .mul_scalar(1.0 - t)
+                                    + f_b
+                                        .clone()
+                                        .narrow(1, 3, layout.channels() - 3)
+                                        .mul_scalar(t);
+                                deep.stack(u, features)
+                            }
+                        });
+                    }
                     f.push(f_b);
                     let phi = prolongate_deformation(&coarse, &grid, coarse_state.deformations());
                     let phi = (0..k).map(|i| phi.clone().narrow(0, i, 1)).collect();
@@ -278,7 +383,7 @@ impl Multilevel {
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
 
             let mut report_sweep =
-                |sweep: usize, report: Option<&SweepReport>, state: &LevelState| {
+                |phase: Phase, sweep: usize, report: Option<&SweepReport>, state: &LevelState| {
                     let value = ipalm.energy(state);
                     let numbers = to_host(Tensor::cat(
                         vec![
@@ -297,8 +402,12 @@ impl Multilevel {
                         level,
                         levels: sizes.len(),
                         grid: &grid,
+                        phase,
                         sweep,
-                        sweeps: cfg.sweeps,
+                        sweeps: match phase {
+                            Phase::Features => model.pre_sweeps(),
+                            Phase::Joint => cfg.sweeps,
+                        },
                         energy: numbers[0],
                         regularizer: numbers[1],
                         data: numbers[2],
@@ -308,37 +417,64 @@ impl Multilevel {
                     });
                     Ok(())
                 };
-            report_sweep(0, None, &state)?;
-            for sweep in 1..=cfg.sweeps {
-                let report = ipalm
-                    .sweep(&mut state, SweepKind::Joint)
-                    .map_err(|e| match e {
-                        Error::NonFinite { what } => Error::NonFinite {
-                            what: format!("level {level}, sweep {sweep}: {what}"),
+            let where_ = |phase: Phase, sweep: usize| {
+                move |e: Error| match e {
+                    Error::NonFinite { what } => Error::NonFinite {
+                        what: match phase {
+                            Phase::Joint => format!("level {level}, sweep {sweep}: {what}"),
+                            Phase::Features => {
+                                format!("level {level}, feature-only sweep {sweep}: {what}")
+                            }
                         },
-                        other => other,
-                    })?;
-                report_sweep(sweep, Some(&report), &state)?;
-                if interrupt.load(Ordering::Relaxed) {
-                    let anisotropy = ipalm.anisotropies(&state);
-                    return Ok(Morph {
-                        grid,
-                        state,
-                        anisotropy,
-                        termination: Termination::Interrupted { level, sweep },
-                    });
+                    },
+                    other => other,
+                }
+            };
+            let mut stopped = None;
+            // SPEC §7: after a prolongation the deep model first fits the features to the
+            // prolongated deformations (pointless on the first level, where the convex
+            // combination is already optimal for φ = Id).
+            let pre = if prolongated { model.pre_sweeps() } else { 0 };
+            if pre > 0 {
+                report_sweep(Phase::Features, 0, None, &state)?;
+                for sweep in 1..=pre {
+                    let report = ipalm
+                        .sweep(&mut state, SweepKind::FeaturesOnly)
+                        .map_err(where_(Phase::Features, sweep))?;
+                    report_sweep(Phase::Features, sweep, Some(&report), &state)?;
+                    if interrupt.load(Ordering::Relaxed) {
+                        stopped = Some(0);
+                        break;
+                    }
                 }
             }
-            if level + 1 == sizes.len() {
+            if stopped.is_none() {
+                report_sweep(Phase::Joint, 0, None, &state)?;
+                for sweep in 1..=cfg.sweeps {
+                    let report = ipalm
+                        .sweep(&mut state, SweepKind::Joint)
+                        .map_err(where_(Phase::Joint, sweep))?;
+                    report_sweep(Phase::Joint, sweep, Some(&report), &state)?;
+                    if interrupt.load(Ordering::Relaxed) {
+                        stopped = Some(sweep);
+                        break;
+                    }
+                }
+            }
+            if stopped.is_some() || level + 1 == sizes.len() {
                 let anisotropy = ipalm.anisotropies(&state);
                 return Ok(Morph {
                     grid,
                     state,
                     anisotropy,
-                    termination: Termination::Completed,
+                    layout,
+                    termination: match stopped {
+                        Some(sweep) => Termination::Interrupted { level, sweep },
+                        None => Termination::Completed,
+                    },
                 });
             }
-            previous = Some((grid, state));
+            previous = Some((grid, state, layout));
         }
         unreachable!("the last level returns")
     }

@@ -6,7 +6,7 @@ use std::io::IsTerminal;
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-use crate::multilevel::{Observer, SweepEvent};
+use crate::multilevel::{Observer, Phase, SweepEvent};
 
 /// One line of `energy.csv`.
 #[derive(Clone, Debug, PartialEq)]
@@ -116,6 +116,11 @@ impl EnergyLog {
 
 impl Observer for EnergyLog {
     fn sweep(&mut self, e: &SweepEvent<'_>) {
+        // One row per joint sweep; the energy after the deep model's feature-only sweeps is
+        // the level's sweep-0 row.
+        if e.phase == Phase::Features {
+            return;
+        }
         let (lipschitz_phi, lipschitz_f) = match e.report {
             Some(r) => (
                 r.deformation.iter().map(|s| s.lipschitz).collect(),
@@ -181,11 +186,16 @@ impl Progress {
             .progress_chars("=> "),
         );
         bar.set_prefix(format!(
-            "level {}/{} {}x{}",
+            "level {}/{} {}x{}{}",
             e.level + 1,
             e.levels,
             e.grid.height(),
-            e.grid.width()
+            e.grid.width(),
+            if e.phase == Phase::Features {
+                " features only"
+            } else {
+                ""
+            }
         ));
         bar
     }
@@ -205,7 +215,7 @@ impl Observer for Progress {
         if let Some(bar) = &self.bar {
             bar.set_position(e.sweep as u64);
             bar.set_message(format!("E {:.5e}", e.energy));
-            if e.sweep == e.sweeps && e.level + 1 == e.levels {
+            if e.sweep == e.sweeps && e.level + 1 == e.levels && e.phase == Phase::Joint {
                 bar.finish();
             }
         }
@@ -217,10 +227,15 @@ impl Observer for Progress {
                 )
             });
             eprintln!(
-                "level {} ({}x{}) sweep {:>4}/{}: E = {:.6e} (R {:.4e}, D {:.4e}), phi trials {trials}, dropped {dropped}, {:.1} s",
+                "level {} ({}x{}) {}sweep {:>4}/{}: E = {:.6e} (R {:.4e}, D {:.4e}), phi trials {trials}, dropped {dropped}, {:.1} s",
                 e.level,
                 e.grid.height(),
                 e.grid.width(),
+                if e.phase == Phase::Features {
+                    "feature-only "
+                } else {
+                    ""
+                },
                 e.sweep,
                 e.sweeps,
                 e.energy,

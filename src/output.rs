@@ -89,10 +89,28 @@ pub struct RunRecord {
     pub safeguard: bool,
     /// Whether the GIF plays back and forth.
     pub pingpong: bool,
+    /// The deep model's settings (absent for the RGB model).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub deep: Option<DeepRecord>,
     /// `"completed"` or where it was interrupted.
     pub termination: String,
     /// Wall-clock seconds of the solver.
     pub seconds: f64,
+}
+
+/// The deep model's part of [`RunRecord`] (SPEC §4, §7).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DeepRecord {
+    /// The VGG19 weights file.
+    pub vgg19: String,
+    /// `η`.
+    pub eta: f64,
+    /// `τ` (`--feature-rms`).
+    pub feature_rms: f64,
+    /// `J_pre`.
+    pub pre_sweeps: usize,
+    /// RMS of each VGG tap of the inputs before scaling, relu1_2 first.
+    pub tap_rms: Vec<f64>,
 }
 
 /// Writes `frame_00.png … frame_K.png`.
