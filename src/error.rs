@@ -51,21 +51,23 @@ pub enum Error {
     },
 
     /// A file could not be read or written.
-    #[error("{}: {source}", path.display())]
+    // The cause is part of the message and deliberately not a `source()`: the CLI prints
+    // error chains, which would repeat it.
+    #[error("{}: {cause}", path.display())]
     Io {
         /// The file.
         path: std::path::PathBuf,
         /// What the operating system said.
-        source: std::io::Error,
+        cause: std::io::Error,
     },
 
     /// An image file could not be decoded or encoded.
-    #[error("{}: {source}", path.display())]
+    #[error("{}: {cause}", path.display())]
     Image {
         /// The file.
         path: std::path::PathBuf,
         /// What the decoder said.
-        source: image::ImageError,
+        cause: image::ImageError,
     },
 
     /// A NaN or infinity appeared where the solver needs finite numbers.

@@ -169,7 +169,7 @@ impl RgbImage {
 pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
     fs::read(path).map_err(|source| Error::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     })
 }
 
@@ -182,7 +182,7 @@ pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
 pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
     let io_error = |source| Error::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     };
     image::ImageReader::open(path)
         .map_err(io_error)?
@@ -191,7 +191,7 @@ pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
         .decode()
         .map_err(|source| Error::Image {
             path: path.to_path_buf(),
-            source,
+            cause: source,
         })
 }
 
@@ -234,7 +234,7 @@ pub fn write_atomically(
 ) -> Result<()> {
     let io_error = |source| Error::Io {
         path: path.to_path_buf(),
-        source,
+        cause: source,
     };
     let name = path
         .file_name()
@@ -266,7 +266,7 @@ pub fn write_png(path: &Path, img: &image::RgbImage) -> Result<()> {
     )
     .map_err(|e| Error::Image {
         path: path.to_path_buf(),
-        source: e,
+        cause: e,
     })?;
     write_atomically(path, |w| w.write_all(&bytes))
 }

@@ -143,7 +143,7 @@ pub fn write_gif(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64)
         let mut encoder = GifEncoder::new_with_speed(&mut bytes, 10);
         let gif_error = |e| Error::Image {
             path: path.to_path_buf(),
-            source: e,
+            cause: e,
         };
         encoder.set_repeat(Repeat::Infinite).map_err(gif_error)?;
         for frame in order {

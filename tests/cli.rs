@@ -322,3 +322,121 @@ fn wgpu_without_a_driver_is_a_clear_error() {
     assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+#[test]
+fn deep_model_options_are_checked_before_any_work() {
+    let dir = scratch("deep-bad");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 32, 32, 0.4, 0.4);
+    write_image(&b, 32, 32, 0.6, 0.6);
+    let junk = dir.join("junk.onnx");
+    std::fs::write(&junk, b"not a network").unwrap();
+    let run = |extra: &[&str]| {
+        let mut cmd = deepmorph();
+        cmd.args(["morph", a.to_str().unwrap(), b.to_str().unwrap(), "-o"])
+            .arg(dir.join("out"))
+            .args(["-K", "3", "--sweeps", "3"])
+            .args(extra);
+        fails(&mut cmd)
+    };
+    let msg = run(&["--model", "deep"]);
+    assert!(msg.contains("--vgg19 FILE"), "{msg}");
+    let msg = run(&["--model", "deep", "--vgg19", "absent.onnx"]);
+    assert!(
+        msg.contains("absent.onnx") && msg.matches("os error").count() == 1,
+        "{msg}"
+    );
+    let msg = run(&["--model", "deep", "--vgg19", junk.to_str().unwrap()]);
+    assert!(
+        msg.contains("junk.onnx") && msg.contains("not a readable ONNX model"),
+        "{msg}"
+    );
+    let msg = run(&["--vgg19", junk.to_str().unwrap()]);
+    assert!(msg.contains("only by --model deep"), "{msg}");
+    let msg = run(&[
+        "--model",
+        "deep",
+        "--vgg19",
+        junk.to_str().unwrap(),
+        "--levels",
+        "6",
+    ]);
+    assert!(msg.contains("at most 5"), "{msg}");
+    let msg = run(&[
+        "--model",
+        "deep",
+        "--vgg19",
+        junk.to_str().unwrap(),
+        "--size",
+        "40x40",
+    ]);
+    assert!(msg.contains("multiples of 16"), "{msg}");
+    assert!(!dir.join("out").join("frame_00.png").exists());
+    std::fs::remove_dir_all(dir).ok();
+}
+
+/// The stand-in VGG19 of the team's shared data, when present.
+fn stand_in() -> Option<PathBuf> {
+    let path =
+        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/vgg19/vgg19_hed_stand_in.onnx");
+    if path.exists() {
+        Some(path)
+    } else {
+        eprintln!(
+            "skipped: {} not found (the team's shared test data)",
+            path.display()
+        );
+        None
+    }
+}
+
+#[test]
+fn deep_morph_with_the_stand_in_weights() {
+    let Some(vgg19) = stand_in() else { return };
+    let dir = scratch("deep");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 40, 36, 0.4, 0.4);
+    write_image(&b, 40, 36, 0.55, 0.6);
+    let out = dir.join("out");
+    deepmorph()
+        .args(["morph", a.to_str().unwrap(), b.to_str().unwrap(), "-o"])
+        .arg(&out)
+        .args([
+            "-K",
+            "3",
+            "--levels",
+            "2",
+            "--sweeps",
+            "3",
+            "--pre-sweeps",
+            "2",
+            "-q",
+        ])
+        .args(["--model", "deep", "--vgg19"])
+        .arg(&vgg19)
+        .assert()
+        .success();
+    // 40x36 is brought to multiples of 16: 48x32 (rows x columns), nearest by scale.
+    let frame = RgbImage::load(&out.join("frame_00.png")).unwrap();
+    assert_eq!((frame.height() % 16, frame.width() % 16), (0, 0));
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["model"], "deep");
+    assert_eq!(config["lambda"], 0.002);
+    assert_eq!(config["deep"]["feature_rms"], 0.5);
+    assert_eq!(config["deep"]["tap_rms"].as_array().unwrap().len(), 5);
+    // Frame 0 is A at the working size (RGB part / eta, not the eta-scaled channels).
+    let a_work = RgbImage::load(&a)
+        .unwrap()
+        .resized(frame.height(), frame.width());
+    let err = frame
+        .data()
+        .iter()
+        .zip(a_work.data())
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+    assert!(err <= 1.0 / 255.0 + 1e-6, "frame 0 differs from A by {err}");
+    let log =
+        EnergyLog::from_csv(&std::fs::read_to_string(out.join("energy.csv")).unwrap()).unwrap();
+    assert_eq!(log.records.len(), 2 * 4);
+    std::fs::remove_dir_all(dir).ok();
+}
