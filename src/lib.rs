@@ -37,6 +37,7 @@ pub mod eval;
 pub mod grid;
 pub mod io;
 pub mod layout;
+pub mod memory;
 pub mod metrics;
 pub mod multilevel;
 pub mod observe;

@@ -10,6 +10,7 @@ use clap::{Args, Parser, Subcommand};
 use deepmorph::deep::{DeepConfig, DeepFeatures};
 use deepmorph::eval::MorphFolder;
 use deepmorph::io::{RgbImage, write_atomically, write_png};
+use deepmorph::memory;
 use deepmorph::metrics::Metrics;
 use deepmorph::multilevel::{FeatureModel, Multilevel, MultilevelConfig, Termination, fit_size};
 use deepmorph::observe::{EnergyLog, Progress, Verbosity};
@@ -157,7 +158,7 @@ struct RunArgs {
     pre_sweeps: usize,
     /// Refuse to start when the estimated peak memory exceeds this many GiB [default: the
     /// memory available now].
-    #[arg(long, value_name = "GIB")]
+    #[arg(long, value_name = "GIB", allow_negative_numbers = true)]
     max_memory: Option<f64>,
     /// Compute backend (flex, ndarray or wgpu, as compiled in).
     #[arg(long)]
@@ -451,6 +452,7 @@ fn morph(
         ..MultilevelConfig::default()
     };
     let driver = Multilevel::new(config).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let estimate = check_memory(args, backend, a.height(), a.width())?;
     let out = prepare_output(&args.output, inputs, &output_names(args.steps()))?;
 
     let precision = Precision::F32;
@@ -496,14 +498,15 @@ fn morph(
     };
     if !args.quiet {
         eprintln!(
-            "{command}: {} model, {}x{} (WxH), K = {}, {} levels x {} sweeps, {} backend",
+            "{command}: {} model, {}x{} (WxH), K = {}, {} levels x {} sweeps, {} backend, about {:.1} GiB",
             args.model,
             a.width(),
             a.height(),
             args.steps(),
             args.levels(),
             args.sweeps(),
-            backend
+            backend,
+            memory::gib(estimate)
         );
     }
     let started = Instant::now();
@@ -592,6 +595,37 @@ fn morph(
         std::process::exit(130);
     }
     Ok(())
+}
+
+/// Refuses a morph whose estimated peak memory exceeds `--max-memory`, or on a CPU backend
+/// the memory available now, before anything large is allocated.
+fn check_memory(args: &RunArgs, backend: Backend, h: usize, w: usize) -> Result<u64> {
+    let channels = if args.deep() { 3 + 64 } else { 3 };
+    let estimate = memory::estimate_peak_bytes(h, w, args.steps(), channels, args.deep());
+    let limit = match args.max_memory {
+        Some(gib) if gib.is_finite() && gib > 0.0 => {
+            Some(((gib * (1u64 << 30) as f64) as u64, "--max-memory"))
+        }
+        Some(gib) => bail!("invalid --max-memory {gib}: must be a number of GiB > 0"),
+        // On wgpu the tensors live in GPU memory, which the host cannot see.
+        None if backend != Backend::Wgpu => {
+            memory::available_bytes().map(|b| (b, "available memory"))
+        }
+        None => None,
+    };
+    if let Some((limit, what)) = limit
+        && estimate > limit
+    {
+        bail!(
+            "this morph needs about {:.1} GiB ({w}x{h}, K = {}, {} model) but the {what} is {:.1} GiB: \
+             use a smaller --size or --max-side, fewer steps -K, or raise --max-memory",
+            memory::gib(estimate),
+            args.steps(),
+            args.model,
+            memory::gib(limit)
+        );
+    }
+    Ok(estimate)
 }
 
 /// Creates the output directory and refuses one whose outputs would overwrite an input.

@@ -243,6 +243,17 @@ impl Observer for Progress {
                 e.data,
                 e.seconds
             );
+            if e.phase == Phase::Joint
+                && e.sweep == e.sweeps
+                && let Some(peak) = crate::memory::peak_resident_bytes()
+            {
+                eprintln!(
+                    "level {} done after {:.1} s; peak memory so far {:.0} MiB",
+                    e.level,
+                    e.seconds,
+                    peak as f64 / (1u64 << 20) as f64
+                );
+            }
         }
     }
 }

@@ -371,6 +371,14 @@ fn deep_model_options_are_checked_before_any_work() {
         "40x40",
     ]);
     assert!(msg.contains("multiples of 16"), "{msg}");
+    // Refused before allocating when the estimate exceeds the limit.
+    let msg = run(&["--max-memory", "0.01"]);
+    assert!(
+        msg.contains("needs about") && msg.contains("--max-memory is 0.0 GiB"),
+        "{msg}"
+    );
+    let msg = run(&["--max-memory", "-1"]);
+    assert!(msg.contains("invalid --max-memory -1"), "{msg}");
     assert!(!dir.join("out").join("frame_00.png").exists());
     std::fs::remove_dir_all(dir).ok();
 }
