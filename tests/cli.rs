@@ -383,24 +383,11 @@ fn deep_model_options_are_checked_before_any_work() {
     std::fs::remove_dir_all(dir).ok();
 }
 
-/// The stand-in VGG19 of the team's shared data, when present.
-fn stand_in() -> Option<PathBuf> {
-    let path =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/vgg19/vgg19_hed_stand_in.onnx");
-    if path.exists() {
-        Some(path)
-    } else {
-        eprintln!(
-            "skipped: {} not found (the team's shared test data)",
-            path.display()
-        );
-        None
-    }
-}
-
 #[test]
 fn deep_morph_with_the_stand_in_weights() {
-    let Some(vgg19) = stand_in() else { return };
+    let Some(vgg19) = common::stand_in_vgg19() else {
+        return;
+    };
     let dir = scratch("deep");
     let (a, b) = (dir.join("a.png"), dir.join("b.png"));
     write_image(&a, 40, 36, 0.4, 0.4);

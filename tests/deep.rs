@@ -18,13 +18,7 @@ use deepmorph::vgg::{Vgg19, Vgg19Weights};
 use deepmorph::{EnergyParams, Precision};
 
 fn random_vgg(device: &Device) -> Vgg19 {
-    let mut state = 0x2545_f491_4f6c_dd1du64;
-    let mut next = move || {
-        state ^= state << 13;
-        state ^= state >> 7;
-        state ^= state << 17;
-        (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
-    };
+    let mut next = common::uniform(0x2545_f491_4f6c_dd1d);
     let convs = conv_shapes()
         .iter()
         .enumerate()

@@ -8,7 +8,7 @@ mod common;
 #[path = "../onnx/vgg19_graph.rs"]
 mod vgg19_graph;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use burn::tensor::{DType, Tensor};
 use common::{
@@ -18,25 +18,12 @@ use deepmorph::Backend;
 use deepmorph::Precision;
 use deepmorph::vgg::{TAPS, Vgg19, Vgg19Weights};
 
-/// The stand-in weights of `../shared/data`, or why the test is skipped.
-pub fn stand_in() -> Option<PathBuf> {
-    let path =
-        Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/vgg19/vgg19_hed_stand_in.onnx");
-    if path.exists() {
-        Some(path)
-    } else {
-        eprintln!(
-            "skipped: {} not found (the team's shared test data)",
-            path.display()
-        );
-        None
-    }
-}
-
 on_each_backend!(stand_in_taps_match_onnxruntime);
 
 fn stand_in_taps_match_onnxruntime(backend: Backend) {
-    let Some(path) = stand_in() else { return };
+    let Some(path) = common::stand_in_vgg19() else {
+        return;
+    };
     let golden = Golden::load("vgg19_stand_in_taps");
     let device = device(backend, Precision::F32, false);
     let vgg = Vgg19::load(&path, &device).unwrap();

@@ -327,3 +327,30 @@ impl Rng {
             .collect()
     }
 }
+
+/// The stand-in VGG19 of the team's shared data (`../shared/data/vgg19`), or `None` with the
+/// reason printed: a user's fresh clone has no `../shared`.
+pub fn stand_in_vgg19() -> Option<PathBuf> {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/vgg19/vgg19_hed_stand_in.onnx");
+    if path.exists() {
+        Some(path)
+    } else {
+        eprintln!(
+            "skipped: {} not found (the team's shared test data)",
+            path.display()
+        );
+        None
+    }
+}
+
+/// Deterministic uniform numbers in `[−1, 1)` (xorshift), for known test weights.
+pub fn uniform(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed | 1;
+    move || {
+        state ^= state << 13;
+        state ^= state >> 7;
+        state ^= state << 17;
+        (state >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    }
+}
