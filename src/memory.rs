@@ -3,7 +3,7 @@
 //!
 //! The model is empirical: peak resident memory was measured (GNU time's max RSS, flex
 //! backend, 2-core Xeon) for deep morphs at 64² K 4 (164 MB), 128² K 4 (245 MB) and
-//! 128² K 8 (445 MB), and for RGB morphs. It grows with `K · H · W · C_tot` at the finest
+//! 128² K 8 (445 MB), 256² K 15 (1.31 GiB; estimate 3.4 GiB), and for RGB morphs. It grows with `K · H · W · C_tot` at the finest
 //! level (coarser levels have a quarter of the pixels and at most twice the channels), at
 //! 28–40 bytes per step, pixel and channel; the estimate uses 48 to stay on the safe side.
 
