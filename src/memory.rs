@@ -5,9 +5,10 @@
 //! backend, 2-core Xeon) for deep morphs at 64² K 4 (164 MB), 128² K 4 (245 MB) and
 //! 128² K 8 (445 MB), 256² K 15 (1.31 GiB; estimate 3.4 GiB), and for RGB morphs. It grows with `K · H · W · C_tot` at the finest
 //! level (coarser levels have a quarter of the pixels and at most twice the channels), at
-//! 28–40 bytes per step, pixel and channel; the estimate uses 48 to stay on the safe side.
+//! 28–40 bytes per step, pixel and channel at 64²–128² (about 13 at 256², where the fixed part
+//! weighs less); the estimate uses 48 to stay on the safe side.
 
-/// Bytes per step, pixel and channel of the finest level (measured 28–40, see above).
+/// Bytes per step, pixel and channel of the finest level (measured 13–40, see above).
 const BYTES_PER_STEP_PIXEL_CHANNEL: f64 = 48.0;
 /// The program, the VGG19 weights (80 MB) while they are read and loaded.
 const DEEP_BASE: f64 = 200e6;

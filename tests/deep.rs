@@ -11,7 +11,7 @@ use burn::tensor::{DType, Device, Tensor, TensorData};
 use common::{device, reference_backend, values};
 use deepmorph::deep::{DeepConfig, DeepFeatures};
 use deepmorph::multilevel::{
-    FeatureModel, Multilevel, MultilevelConfig, Observer, Phase, SweepEvent,
+    FeatureModel, Morph, Multilevel, MultilevelConfig, Observer, Phase, SweepEvent,
 };
 use deepmorph::vgg::weights::{ConvWeights, conv_shapes};
 use deepmorph::vgg::{Vgg19, Vgg19Weights};
@@ -107,28 +107,41 @@ fn features_are_scaled_to_tau_on_every_level() {
     assert!(err.contains("multiples of 16"), "{err}");
 }
 
-#[test]
-fn deep_morph_runs_feature_sweeps_after_prolongation_and_outputs_rgb() {
-    let device = device(reference_backend(), Precision::F32, true);
+/// A deep morph of `a` into `b` with `pre_sweeps` feature-only sweeps, on the reference
+/// backend with a random VGG19.
+fn deep_morph(
+    a: &Tensor<4>,
+    b: &Tensor<4>,
+    pre_sweeps: usize,
+    config: MultilevelConfig,
+    observer: &mut dyn Observer,
+) -> Morph {
+    let device = a.device();
     let vgg = random_vgg(&device);
-    let (a, b) = (image(32, 32, 0.0, &device), image(32, 32, 2.0, &device));
     let deep = DeepConfig {
-        pre_sweeps: 3,
+        pre_sweeps,
         ..DeepConfig::default()
     };
     let model = FeatureModel::Deep(DeepFeatures::new(&vgg, a.clone(), b.clone(), deep).unwrap());
-    let mut events = Events::default();
-    let morph = Multilevel::new(config(2, 4))
+    Multilevel::new(config)
         .unwrap()
         .run_with(
             &device,
             a.clone(),
             b.clone(),
             &model,
-            &mut events,
+            observer,
             &AtomicBool::new(false),
         )
-        .unwrap();
+        .unwrap()
+}
+
+#[test]
+fn deep_morph_runs_feature_sweeps_after_prolongation_and_outputs_rgb() {
+    let device = device(reference_backend(), Precision::F32, true);
+    let (a, b) = (image(32, 32, 0.0, &device), image(32, 32, 2.0, &device));
+    let mut events = Events::default();
+    let morph = deep_morph(&a, &b, 3, config(2, 4), &mut events);
 
     // Level 0: joint sweeps only; level 1: 3 feature-only sweeps, then the joint ones.
     let phases: Vec<(usize, Phase, usize)> = events.0.iter().map(|e| (e.0, e.1, e.2)).collect();
@@ -164,40 +177,13 @@ fn deep_morph_runs_feature_sweeps_after_prolongation_and_outputs_rgb() {
 #[test]
 fn equal_images_give_zero_energy_and_a_constant_deep_path() {
     let device = device(reference_backend(), Precision::F32, true);
-    let vgg = random_vgg(&device);
     let a = image(32, 32, 0.0, &device);
-    let deep = DeepConfig {
-        pre_sweeps: 2,
-        ..DeepConfig::default()
-    };
-    let model = FeatureModel::Deep(DeepFeatures::new(&vgg, a.clone(), a.clone(), deep).unwrap());
     let mut events = Events::default();
-    let morph = Multilevel::new(config(2, 2))
-        .unwrap()
-        .run_with(
-            &device,
-            a.clone(),
-            a.clone(),
-            &model,
-            &mut events,
-            &AtomicBool::new(false),
-        )
-        .unwrap();
+    deep_morph(&a, &a, 2, config(2, 2), &mut events);
     assert!(events.0.iter().all(|e| e.3.abs() < 1e-9), "{:?}", events.0);
     // On one level the path stays exactly A (on two, the interior RGB channels start from the
     // prolongated coarse images, which differ from A by the resampling error, weighted η²).
-    let _ = morph;
-    let morph = Multilevel::new(config(1, 3))
-        .unwrap()
-        .run_with(
-            &device,
-            a.clone(),
-            a.clone(),
-            &model,
-            &mut (),
-            &AtomicBool::new(false),
-        )
-        .unwrap();
+    let morph = deep_morph(&a, &a, 2, config(1, 3), &mut ());
     for u in morph.images() {
         assert!(values((u - a.clone()).abs().max())[0] < 1e-5);
     }

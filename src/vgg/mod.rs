@@ -3,6 +3,9 @@
 //! user's file ([`weights`]), the ImageNet normalisation in front of it, and the table that
 //! says which tap feeds which pyramid level.
 
+// The architecture build.rs hands to burn-import, also the reference for weight shapes.
+#[path = "../../onnx/vgg19_graph.rs"]
+mod graph;
 pub mod model;
 mod proto;
 pub mod weights;

@@ -15,18 +15,9 @@ pub const CONV_NAMES: [&str; 16] = [
     "conv4_1", "conv4_2", "conv4_3", "conv4_4", "conv5_1", "conv5_2", "conv5_3", "conv5_4",
 ];
 
-/// `[out, in, 3, 3]` of each convolution of VGG19.
-pub fn conv_shapes() -> [[usize; 4]; 16] {
-    const OUT: [usize; 16] = [
-        64, 64, 128, 128, 256, 256, 256, 256, 512, 512, 512, 512, 512, 512, 512, 512,
-    ];
-    let mut shapes = [[0; 4]; 16];
-    let mut channels = 3;
-    for (s, &o) in shapes.iter_mut().zip(&OUT) {
-        *s = [o, channels, 3, 3];
-        channels = o;
-    }
-    shapes
+/// `[out, in, 3, 3]` of each convolution of VGG19 (from the graph build.rs imports).
+pub fn conv_shapes() -> Vec<[usize; 4]> {
+    super::graph::conv_shapes()
 }
 
 /// One convolution's parameters as found in a file.
