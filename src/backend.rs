@@ -11,6 +11,7 @@ use std::fmt;
 use burn::tensor::{DType, Device};
 
 use crate::error::{Error, Result};
+use crate::warp::Gather;
 
 /// A Burn backend this program can run on. Every variant exists in every build, so a
 /// request for a backend that was not compiled in is an error with a remedy, not a
@@ -81,6 +82,42 @@ impl Backend {
     /// though ndarray sweeps the RGB model faster today (README, "Benchmarks").
     pub fn default_compiled() -> Option<Backend> {
         Self::ALL.into_iter().find(|b| b.is_compiled())
+    }
+
+    /// The backend a device belongs to, if it is one of this build's.
+    pub fn of(device: &Device) -> Option<Backend> {
+        // Device equality ignores autodiff: an autodiff device answers for the one it wraps.
+        Self::compiled()
+            .into_iter()
+            .find(|b| b.device_unchecked_cpu().is_some_and(|d| d == *device))
+            .or_else(|| cfg!(feature = "wgpu").then_some(Backend::Wgpu))
+    }
+
+    /// How the warp reads spline coefficients on this backend ([`Gather`]): whole rows on the
+    /// CPU backends, where a row is one memory copy; scalar gathers on wgpu, whose row
+    /// scatter runs one thread per channel.
+    pub fn warp_gather(self) -> Gather {
+        match self {
+            Backend::Flex | Backend::NdArray => Gather::Rows,
+            Backend::Wgpu => Gather::Elements,
+        }
+    }
+
+    /// [`warp_gather`](Self::warp_gather) of the backend `device` belongs to (scalar gathers
+    /// for a device of no known backend).
+    pub fn warp_gather_of(device: &Device) -> Gather {
+        Self::of(device).map_or(Gather::Elements, Backend::warp_gather)
+    }
+
+    /// The device of a CPU backend, built without probing anything; `None` for wgpu.
+    fn device_unchecked_cpu(self) -> Option<Device> {
+        match self {
+            #[cfg(feature = "flex")]
+            Backend::Flex => Some(Device::flex()),
+            #[cfg(feature = "ndarray")]
+            Backend::NdArray => Some(Device::ndarray()),
+            _ => None,
+        }
     }
 
     /// Whether the backend computes in `precision`.
@@ -186,5 +223,23 @@ impl std::str::FromStr for Backend {
             .into_iter()
             .find(|b| b.name().eq_ignore_ascii_case(s))
             .ok_or_else(|| format!("unknown backend `{s}`: expected flex, ndarray or wgpu"))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_device_knows_its_backend_with_or_without_autodiff() {
+        for backend in Backend::compiled() {
+            if backend == Backend::Wgpu {
+                continue; // needs a driver; covered by the gather parity tests
+            }
+            let device = backend.device().unwrap();
+            assert_eq!(Backend::of(&device), Some(backend));
+            assert_eq!(Backend::of(&device.clone().autodiff()), Some(backend));
+            assert_eq!(Backend::warp_gather_of(&device), Gather::Rows);
+        }
     }
 }

@@ -121,10 +121,24 @@ pub const BSPLINE_POLE: f64 = -0.267_949_192_431_122_7;
 /// (x(m(i−1)) + 4 x(i) + x(m(i+1))) / 6`, i.e. the coefficients `c = P f` reproduce `f` at
 /// every grid point. The folded matrix is still tridiagonal (`m(−1) = 1` is a neighbour of
 /// 0), so the Thomas algorithm on the identity gives `P` in `O(n²)`.
+///
+/// Entries below [`PREFILTER_FLUSH`] in magnitude are set to zero: they decay like
+/// `0.268^|i−j|` and from `|i − j| ≈ 65` on are float32 subnormals, which x86 multiplies
+/// about 16× slower (a 67-channel 128² prefilter took 57 ms per pass instead of 3.5 ms). The
+/// dropped mass is ten orders of magnitude below float32 resolution.
 pub fn bspline_prefilter(n: usize) -> Matrix {
     let a = Matrix::from_stencil(n, &[1.0 / 6.0, 4.0 / 6.0, 1.0 / 6.0]);
-    solve_tridiagonal(&a, &Matrix::identity(n))
+    let mut p = solve_tridiagonal(&a, &Matrix::identity(n));
+    for x in &mut p.data {
+        if x.abs() < PREFILTER_FLUSH {
+            *x = 0.0;
+        }
+    }
+    p
 }
+
+/// Prefilter entries smaller than this are dropped (see [`bspline_prefilter`]).
+pub const PREFILTER_FLUSH: f64 = 1e-18;
 
 /// The 25 taps `h[n] = √3 · z^|n|`, `|n| ≤ 12`, of the truncated prefilter (SPEC §1).
 pub fn bspline_prefilter_taps25() -> Vec<f64> {

@@ -23,6 +23,97 @@ use crate::stencil::bspline_prefilter;
 pub struct BSpline {
     grid: Grid,
     prefilter: Separable,
+    gather: Gather,
+}
+
+/// How the evaluation reads the 4 × 4 coefficients around each sample point. Both are plain
+/// tensor ops with the same result on every backend (to rounding); they differ in speed:
+///
+/// - [`Gather::Elements`]: 16 `gather`s of `[N, C, P]` scalars, one thread per output
+///   element, and a scatter-add backward. Right for GPUs.
+/// - [`Gather::Rows`]: the coefficients laid out channels-last (`[N·H·W, C]`) and one
+///   `select` of `16·N·P` whole rows of `C` contiguous values; its backward adds rows
+///   (`select_assign`). On a CPU a row is one memory copy, where `gather` pays for an index
+///   computation per scalar: 3.2× faster on flex for the deep model's 67 channels (README,
+///   "Benchmarks"). Not for wgpu: its `select_assign` runs one thread per channel over all
+///   indices, and on lavapipe it lost updates beyond 65,535 indices (BURN-NOTES).
+///
+/// [`crate::Backend::warp_gather`] says which one a backend gets.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Gather {
+    /// Scalar gathers, channels-first.
+    Elements,
+    /// Row selects, channels-last.
+    Rows,
+}
+
+/// The spline evaluation at fixed points (see [`BSpline::sampler`]).
+#[derive(Clone, Debug)]
+pub struct Sampler {
+    batch: usize,
+    out: [usize; 2],
+    reads: Reads,
+}
+
+#[derive(Clone, Debug)]
+enum Reads {
+    /// 16 flat indices `[N, 1, P]` and the weights `β(p₀ − i) β(p₁ − j)`, `[N, 1, P]`.
+    Elements {
+        index: Vec<Tensor<3, Int>>,
+        weights: Vec<Tensor<3>>,
+    },
+    /// Row indices of the channels-last table, `[N·P·16]` point-major, and the weights,
+    /// `[N·P, 1, 16]`.
+    Rows {
+        index: Tensor<1, Int>,
+        weights: Tensor<3>,
+    },
+}
+
+impl Sampler {
+    /// The spline with coefficients `coeffs` at the sampler's points.
+    ///
+    /// # Shapes
+    /// - `coeffs`: `[N, C, H, W]` on the sampler's grid
+    /// - output: `[N, C, H', W']`
+    pub fn sample(&self, coeffs: Tensor<4>) -> Tensor<4> {
+        let [n, c, h, w] = coeffs.dims();
+        assert_eq!(
+            n, self.batch,
+            "the sampler was built for {} frames",
+            self.batch
+        );
+        let [ho, wo] = self.out;
+        let p = ho * wo;
+        match &self.reads {
+            Reads::Elements { index, weights } => {
+                let coeffs = coeffs.reshape([n, c, h * w]);
+                index
+                    .iter()
+                    .zip(weights)
+                    .map(|(i, wt)| {
+                        coeffs.clone().gather(2, i.clone().expand([n, c, p])) * wt.clone()
+                    })
+                    .reduce(|acc, term| acc + term)
+                    .expect("16 neighbours")
+                    .reshape([n, c, ho, wo])
+            }
+            // The weighted sum over the 16 rows of a point is a `[1, 16] × [16, C]` product:
+            // one batched matmul beats a broadcast multiply and a sum 4× on flex.
+            Reads::Rows { index, weights } => weights
+                .clone()
+                .matmul(
+                    coeffs
+                        .permute([0, 2, 3, 1])
+                        .reshape([n * h * w, c])
+                        .select(0, index.clone())
+                        .reshape([n * p, 16, c]),
+                )
+                .reshape([n, p, c])
+                .swap_dims(1, 2)
+                .reshape([n, c, ho, wo]),
+        }
+    }
 }
 
 /// Where each sample point falls: per axis, the 4 mirrored grid indices and the 4 B-spline
@@ -79,8 +170,16 @@ fn mirror(i: Tensor<3>, n: usize) -> Tensor<3> {
 }
 
 impl BSpline {
-    /// The interpolator for `grid` (builds the `H × H` and `W × W` prefilter matrices).
+    /// The interpolator for `grid` (builds the `H × H` and `W × W` prefilter matrices),
+    /// reading coefficients the way the grid's backend does fastest
+    /// ([`crate::Backend::warp_gather`]).
     pub fn new(grid: &Grid) -> Self {
+        Self::with_gather(grid, crate::Backend::warp_gather_of(grid.device()))
+    }
+
+    /// [`new`](Self::new) with the evaluation strategy chosen by the caller (the tests
+    /// compare both on every backend).
+    pub fn with_gather(grid: &Grid, gather: Gather) -> Self {
         let prefilter = Separable::new(
             grid,
             &bspline_prefilter(grid.height()),
@@ -89,7 +188,13 @@ impl BSpline {
         Self {
             grid: grid.clone(),
             prefilter,
+            gather,
         }
+    }
+
+    /// How this interpolator reads coefficients.
+    pub fn gather(&self) -> Gather {
+        self.gather
     }
 
     /// The grid this interpolator belongs to.
@@ -131,28 +236,54 @@ impl BSpline {
     /// - `phi`: `[N, 2, H', W']`
     /// - output: `[N, C, H', W']`
     pub fn interpolate(&self, coeffs: Tensor<4>, phi: Tensor<4>) -> Tensor<4> {
-        let [n, c, h, w] = coeffs.dims();
-        let [_, _, ho, wo] = phi.dims();
+        self.sampler(phi).sample(coeffs)
+    }
+
+    /// The evaluation at the points `phi`, prepared once (indices and B-spline weights) for
+    /// any number of coefficient tensors: a backtracking search evaluates the same `φ` on
+    /// every trial's frame.
+    ///
+    /// # Shapes
+    /// - `phi`: `[N, 2, H', W']`
+    pub fn sampler(&self, phi: Tensor<4>) -> Sampler {
+        let [n, _, ho, wo] = phi.dims();
         let st = self.stencil(phi);
-        let coeffs = coeffs.reshape([n, c, h * w]);
-        let mut out: Option<Tensor<3>> = None;
-        for a in 0..4 {
-            let mut row: Option<Tensor<3>> = None;
-            for b in 0..4 {
-                let idx = st.flat[4 * a + b].clone().expand([n, c, ho * wo]);
-                let term = coeffs.clone().gather(2, idx) * st.w1[b].clone();
-                row = Some(match row {
-                    Some(r) => r + term,
-                    None => term,
-                });
+        let mut weights = Vec::with_capacity(16);
+        for w0 in &st.w0 {
+            for w1 in &st.w1 {
+                weights.push(w0.clone() * w1.clone());
             }
-            let term = row.expect("4 columns") * st.w0[a].clone();
-            out = Some(match out {
-                Some(o) => o + term,
-                None => term,
-            });
         }
-        out.expect("4 rows").reshape([n, c, ho, wo])
+        let reads = match self.gather {
+            Gather::Elements => Reads::Elements {
+                index: st.flat,
+                weights,
+            },
+            Gather::Rows => {
+                let pixels = self.grid.pixels() as i64;
+                let p = ho * wo;
+                // Row `m` of the channels-last table of batch item `b` is `b·H·W + m`.
+                let offsets = Tensor::<1, Int>::arange(0..n as i64, self.grid.device())
+                    .mul_scalar(pixels)
+                    .reshape([n, 1, 1]);
+                // Point-major: the 16 rows of a point are adjacent in the selected table.
+                let index = st
+                    .flat
+                    .into_iter()
+                    .map(|i| (i + offsets.clone()).reshape([n * p, 1]))
+                    .collect();
+                let weights = weights.into_iter().map(|w| w.reshape([n * p, 1])).collect();
+                Reads::Rows {
+                    index: Tensor::cat(index, 1).reshape([16 * n * p]),
+                    weights: Tensor::cat(weights, 1).reshape([n * p, 1, 16]),
+                }
+            }
+        };
+        Sampler {
+            batch: n,
+            out: [ho, wo],
+            reads,
+        }
     }
 
     /// The adjoint of [`interpolate`](Self::interpolate) in its coefficients, by scatter-add:

@@ -22,7 +22,7 @@ use deepmorph::energy::data::{data_term, data_term_gradient};
 use deepmorph::energy::density::{density, density_gradient};
 use deepmorph::energy::path::PathEnergy;
 use deepmorph::energy::regularizer::{regularizer, regularizer_gradient};
-use deepmorph::warp::BSpline;
+use deepmorph::warp::{BSpline, Gather};
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 const F64: DType = DType::F64;
@@ -220,11 +220,19 @@ fn regularizer_gradient_check(backend: Backend) {
     check("dR/dphi hand vs FD", &hand, &fd, FINITE_DIFFERENCE);
 }
 
+/// Both ways of reading the spline coefficients (`Gather`) get the full check: the one
+/// the backend uses by default and the other.
 fn data_term_gradient_check(backend: Backend) {
+    for gather in [Gather::Elements, Gather::Rows] {
+        data_term_gradient_check_with(backend, gather);
+    }
+}
+
+fn data_term_gradient_check_with(backend: Backend, gather: Gather) {
     let mut s = Setup::new(backend, 3);
     let c = 3;
     let c_tot = 5; // a block of a larger feature vector: the divisor is not read off f
-    let bspline = BSpline::new(&s.grid);
+    let bspline = BSpline::with_gather(&s.grid, gather);
     let f_host = s.rng.smooth_image(c, H, W);
     let ft_host = s.rng.smooth_image(c, H, W);
     let phi_host = s.rng.smooth_deformation(1, H, W, 0.8);
@@ -288,19 +296,19 @@ fn data_term_gradient_check(backend: Backend) {
     ];
     for (i, name) in ["f", "f~", "phi"].iter().enumerate() {
         check(
-            &format!("dD/d{name} auto vs FD"),
+            &format!("dD/d{name} auto vs FD ({gather:?})"),
             &auto[i],
             &fd[i],
             FINITE_DIFFERENCE,
         );
         check(
-            &format!("dD/d{name} hand vs FD"),
+            &format!("dD/d{name} hand vs FD ({gather:?})"),
             &hand[i],
             &fd[i],
             FINITE_DIFFERENCE,
         );
         check(
-            &format!("dD/d{name} hand vs autodiff"),
+            &format!("dD/d{name} hand vs autodiff ({gather:?})"),
             &hand[i],
             &auto[i],
             HAND_VS_AUTODIFF,
@@ -454,7 +462,38 @@ mod parity {
         }
     }
 
-    on_each_backend!(autodiff_in_float32_matches_the_float64_reference);
+    /// The two ways of reading spline coefficients give the same warp and the same autodiff
+    /// gradients (w.r.t. the coefficients' frame and `φ`) on every backend, wgpu included,
+    /// for a batch of 3 (the row gather offsets each batch item's rows) and 5 channels.
+    /// Tolerance `1e-5 · max|want|`: the same float32 sums in another order.
+    fn gather_strategies_agree(backend: Backend) {
+        const SAME: (f64, f64) = (1e-5, 0.0);
+        let (n, c) = (3, 5);
+        let mut rng = Rng(6);
+        let f_host = rng.smooth_image(n * c, H, W);
+        let phi_host = rng.smooth_deformation(n, H, W, 1.5);
+        let y_host = rng.smooth_image(n * c, H, W);
+        let device = device(backend, Precision::F32, true);
+        let grid = Grid::new(H, W, &device, DType::F32).unwrap();
+        let run = |gather: Gather| {
+            let bspline = BSpline::with_gather(&grid, gather);
+            let f = grid.tensor(f_host.clone(), [n, c, H, W]).require_grad();
+            let phi = grid.tensor(phi_host.clone(), [n, 2, H, W]).require_grad();
+            let y: Tensor<4> = grid.tensor(y_host.clone(), [n, c, H, W]);
+            let warped = bspline.warp(f.clone(), phi.clone());
+            let grads = (warped.clone() * y).sum().backward();
+            [warped, f.grad(&grads).unwrap(), phi.grad(&grads).unwrap()].map(values)
+        };
+        let (elements, rows) = (run(Gather::Elements), run(Gather::Rows));
+        for ((name, got), want) in ["T", "dT/df", "dT/dphi"].iter().zip(&rows).zip(&elements) {
+            check(&format!("{name} rows vs elements"), got, want, SAME);
+        }
+    }
+
+    on_each_backend!(
+        autodiff_in_float32_matches_the_float64_reference,
+        gather_strategies_agree,
+    );
 }
 
 on_each_cpu_backend!(
