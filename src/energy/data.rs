@@ -35,8 +35,18 @@ pub fn data_term_from_coefficients(
     phi: Tensor<4>,
     c_tot: usize,
 ) -> Tensor<1> {
+    data_term_from_warped(bspline.interpolate(coeffs_tilde, phi), f, c_tot)
+}
+
+/// [`data_term`] with the warped frame `T[f̃, φ]` given: a feature step keeps `φ` and `f̃`
+/// fixed for a whole backtracking search.
+///
+/// # Shapes
+/// - `warped`: `[N, C, H, W]`, `f`: `[N, C, H, W]`
+/// - output: `[N]`
+pub fn data_term_from_warped(warped: Tensor<4>, f: Tensor<4>, c_tot: usize) -> Tensor<1> {
     let [n, c, h, w] = f.dims();
-    let residual = bspline.interpolate(coeffs_tilde, phi) - f;
+    let residual = warped - f;
     let scale = 1.0 / (2.0 * c_tot as f64 * (h * w) as f64);
     residual
         .square()

@@ -8,7 +8,7 @@
 use burn::tensor::Tensor;
 
 use crate::deformation::{admissible_each, is_admissible};
-use crate::energy::data::data_term_from_coefficients;
+use crate::energy::data::{data_term_from_coefficients, data_term_from_warped};
 use crate::energy::path::{EnergyValue, PathEnergy};
 use crate::energy::regularizer::regularizer;
 use crate::error::{Error, Result};
@@ -452,8 +452,14 @@ impl Ipalm {
         } else {
             f_k
         };
-        // φ_k is already this sweep's, φ_{k+1} still the previous one.
-        let (phi_k, phi_next) = (state.phi[k - 1].clone(), state.phi[k].clone());
+        // φ_k is already this sweep's, φ_{k+1} still the previous one. Both stay fixed for the
+        // whole step: φ_k's stencil serves every block and trial, and T[f_{k+1}, φ_{k+1}] does
+        // not depend on f_k at all.
+        let sampler_k = bspline.sampler(state.phi[k - 1].clone());
+        let next_warped = bspline.interpolate(
+            bspline.coefficients(state.f[k + 1].clone()),
+            state.phi[k].clone(),
+        );
 
         let mut blocks = Vec::new();
         let mut step = FeatureStep {
@@ -463,25 +469,14 @@ impl Ipalm {
         for (b, block) in self.layout.blocks().iter().enumerate() {
             let (start, len) = (block.channels.start, block.channels.len());
             let prev = state.f[k - 1].clone().narrow(1, start, len);
-            let next_coeffs = bspline.coefficients(state.f[k + 1].clone().narrow(1, start, len));
+            let next = next_warped.clone().narrow(1, start, len);
             // Q restricted to the block: (K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}]),
             // still divided by C_tot.
             let q = |x: Tensor<4>| {
-                let warped = data_term_from_coefficients(
-                    bspline,
-                    prev.clone(),
-                    bspline.coefficients(x.clone()),
-                    phi_k.clone(),
-                    c_tot,
-                );
-                let fixed = data_term_from_coefficients(
-                    bspline,
-                    x,
-                    next_coeffs.clone(),
-                    phi_next.clone(),
-                    c_tot,
-                );
-                (warped + fixed).mul_scalar(k_steps / p.delta)
+                let warped = sampler_k.sample(bspline.coefficients(x.clone()));
+                let moved = data_term_from_warped(warped, prev.clone(), c_tot);
+                let fixed = data_term_from_warped(next.clone(), x, c_tot);
+                (moved + fixed).mul_scalar(k_steps / p.delta)
             };
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
             let leaf = x_tilde.clone().require_grad();
