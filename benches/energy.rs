@@ -25,6 +25,10 @@ use deepmorph::energy::path::PathEnergy;
 use deepmorph::warp::BSpline;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
+/// The CLI's allocator (see `src/main.rs`), so the figures are the program's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 const SIZES: [usize; 4] = [64, 128, 256, 512];
 const CHANNELS: [usize; 2] = [3, 67];
 

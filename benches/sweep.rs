@@ -19,14 +19,18 @@
 use std::sync::atomic::AtomicBool;
 use std::time::Duration;
 
+use burn::tensor::Tensor;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use deepmorph::deep::DeepConfig;
 use deepmorph::demo::demo_pair;
 use deepmorph::layout::FeatureLayout;
 use deepmorph::multilevel::{Multilevel, MultilevelConfig};
-use burn::tensor::Tensor;
-use deepmorph::deep::DeepConfig;
 use deepmorph::optim::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind};
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
+
+/// The CLI's allocator (see `src/main.rs`), so the figures are the program's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 const SIZES: [usize; 3] = [64, 128, 256];
 const STEPS: usize = 15;

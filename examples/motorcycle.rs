@@ -23,6 +23,10 @@ use deepmorph::observe::EnergyLog;
 use deepmorph::truth::Correspondence;
 use deepmorph::{Backend, Grid, Precision};
 
+/// The CLI's allocator (see `src/main.rs`), so the figures are the program's.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser)]
 struct Args {
     /// Longest side of the working size.
