@@ -93,12 +93,14 @@ impl Backend {
             .or_else(|| cfg!(feature = "wgpu").then_some(Backend::Wgpu))
     }
 
-    /// How the warp reads spline coefficients on this backend ([`Gather`]): whole rows on the
-    /// CPU backends, where a row is one memory copy; scalar gathers on wgpu, whose row
-    /// scatter runs one thread per channel.
+    /// How the warp reads spline coefficients on this backend ([`Gather`]): whole rows on
+    /// flex, where a row is one memory copy; rows for wide tensors only on ndarray, whose
+    /// channels-last permute and row backward cost more than scalar gathers save below ~32
+    /// channels; scalar gathers on wgpu, whose row scatter runs one thread per channel.
     pub fn warp_gather(self) -> Gather {
         match self {
-            Backend::Flex | Backend::NdArray => Gather::Rows,
+            Backend::Flex => Gather::Rows,
+            Backend::NdArray => Gather::RowsFrom(32),
             Backend::Wgpu => Gather::Elements,
         }
     }
@@ -239,7 +241,7 @@ mod tests {
             let device = backend.device().unwrap();
             assert_eq!(Backend::of(&device), Some(backend));
             assert_eq!(Backend::of(&device.clone().autodiff()), Some(backend));
-            assert_eq!(Backend::warp_gather_of(&device), Gather::Rows);
+            assert_eq!(Backend::warp_gather_of(&device), backend.warp_gather());
         }
     }
 }

@@ -26,7 +26,7 @@ pub struct BSpline {
     gather: Gather,
 }
 
-/// How the evaluation reads the 4 × 4 coefficients around each sample point. Both are plain
+/// How the evaluation reads the 4 × 4 coefficients around each sample point. All are plain
 /// tensor ops with the same result on every backend (to rounding); they differ in speed:
 ///
 /// - [`Gather::Elements`]: 16 `gather`s of `[N, C, P]` scalars, one thread per output
@@ -37,6 +37,9 @@ pub struct BSpline {
 ///   computation per scalar: 3.2× faster on flex for the deep model's 67 channels (README,
 ///   "Benchmarks"). Not for wgpu: its `select_assign` runs one thread per channel over all
 ///   indices, and on lavapipe it lost updates beyond 65,535 indices (BURN-NOTES).
+/// - [`Gather::RowsFrom`]`(c)`: rows for `c` channels or more, elements below. On ndarray the
+///   row select's fixed cost (the permute to channels-last and the row-wise backward) only
+///   pays off for wide tensors: rows lose 6× for 3 channels and win 1.7× for 67.
 ///
 /// [`crate::Backend::warp_gather`] says which one a backend gets.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -45,6 +48,19 @@ pub enum Gather {
     Elements,
     /// Row selects, channels-last.
     Rows,
+    /// Row selects for at least this many channels, scalar gathers below.
+    RowsFrom(usize),
+}
+
+impl Gather {
+    /// Whether `channels` channels are read as rows.
+    pub fn reads_rows(self, channels: usize) -> bool {
+        match self {
+            Gather::Elements => false,
+            Gather::Rows => true,
+            Gather::RowsFrom(min) => channels >= min,
+        }
+    }
 }
 
 /// The spline evaluation at fixed points (see [`BSpline::sampler`]).
@@ -52,22 +68,13 @@ pub enum Gather {
 pub struct Sampler {
     batch: usize,
     out: [usize; 2],
-    reads: Reads,
-}
-
-#[derive(Clone, Debug)]
-enum Reads {
-    /// 16 flat indices `[N, 1, P]` and the weights `β(p₀ − i) β(p₁ − j)`, `[N, 1, P]`.
-    Elements {
-        index: Vec<Tensor<3, Int>>,
-        weights: Vec<Tensor<3>>,
-    },
+    gather: Gather,
+    /// 16 flat indices `[N, 1, P]` and the weights `β(p₀ − i) β(p₁ − j)`, `[N, 1, P]`; present
+    /// unless the gather is [`Gather::Rows`].
+    elements: Option<(Vec<Tensor<3, Int>>, Vec<Tensor<3>>)>,
     /// Row indices of the channels-last table, `[N·P·16]` point-major, and the weights,
-    /// `[N·P, 1, 16]`.
-    Rows {
-        index: Tensor<1, Int>,
-        weights: Tensor<3>,
-    },
+    /// `[N·P, 1, 16]`; present unless the gather is [`Gather::Elements`].
+    rows: Option<(Tensor<1, Int>, Tensor<3>)>,
 }
 
 impl Sampler {
@@ -85,34 +92,32 @@ impl Sampler {
         );
         let [ho, wo] = self.out;
         let p = ho * wo;
-        match &self.reads {
-            Reads::Elements { index, weights } => {
-                let coeffs = coeffs.reshape([n, c, h * w]);
-                index
-                    .iter()
-                    .zip(weights)
-                    .map(|(i, wt)| {
-                        coeffs.clone().gather(2, i.clone().expand([n, c, p])) * wt.clone()
-                    })
-                    .reduce(|acc, term| acc + term)
-                    .expect("16 neighbours")
-                    .reshape([n, c, ho, wo])
-            }
-            // The weighted sum over the 16 rows of a point is a `[1, 16] × [16, C]` product:
-            // one batched matmul beats a broadcast multiply and a sum 4× on flex.
-            Reads::Rows { index, weights } => weights
-                .clone()
-                .matmul(
-                    coeffs
-                        .permute([0, 2, 3, 1])
-                        .reshape([n * h * w, c])
-                        .select(0, index.clone())
-                        .reshape([n * p, 16, c]),
-                )
-                .reshape([n, p, c])
-                .swap_dims(1, 2)
-                .reshape([n, c, ho, wo]),
+        if !self.gather.reads_rows(c) {
+            let (index, weights) = self.elements.as_ref().expect("built for element gathers");
+            let coeffs = coeffs.reshape([n, c, h * w]);
+            return index
+                .iter()
+                .zip(weights)
+                .map(|(i, wt)| coeffs.clone().gather(2, i.clone().expand([n, c, p])) * wt.clone())
+                .reduce(|acc, term| acc + term)
+                .expect("16 neighbours")
+                .reshape([n, c, ho, wo]);
         }
+        let (index, weights) = self.rows.as_ref().expect("built for row selects");
+        // The weighted sum over the 16 rows of a point is a `[1, 16] × [16, C]` product:
+        // one batched matmul beats a broadcast multiply and a sum 4× on flex.
+        weights
+            .clone()
+            .matmul(
+                coeffs
+                    .permute([0, 2, 3, 1])
+                    .reshape([n * h * w, c])
+                    .select(0, index.clone())
+                    .reshape([n * p, 16, c]),
+            )
+            .reshape([n, p, c])
+            .swap_dims(1, 2)
+            .reshape([n, c, ho, wo])
     }
 }
 
@@ -254,35 +259,35 @@ impl BSpline {
                 weights.push(w0.clone() * w1.clone());
             }
         }
-        let reads = match self.gather {
-            Gather::Elements => Reads::Elements {
-                index: st.flat,
-                weights,
-            },
-            Gather::Rows => {
-                let pixels = self.grid.pixels() as i64;
-                let p = ho * wo;
-                // Row `m` of the channels-last table of batch item `b` is `b·H·W + m`.
-                let offsets = Tensor::<1, Int>::arange(0..n as i64, self.grid.device())
-                    .mul_scalar(pixels)
-                    .reshape([n, 1, 1]);
-                // Point-major: the 16 rows of a point are adjacent in the selected table.
-                let index = st
-                    .flat
-                    .into_iter()
-                    .map(|i| (i + offsets.clone()).reshape([n * p, 1]))
-                    .collect();
-                let weights = weights.into_iter().map(|w| w.reshape([n * p, 1])).collect();
-                Reads::Rows {
-                    index: Tensor::cat(index, 1).reshape([16 * n * p]),
-                    weights: Tensor::cat(weights, 1).reshape([n * p, 1, 16]),
-                }
-            }
-        };
+        let rows = (self.gather != Gather::Elements).then(|| {
+            let pixels = self.grid.pixels() as i64;
+            let p = ho * wo;
+            // Row `m` of the channels-last table of batch item `b` is `b·H·W + m`.
+            let offsets = Tensor::<1, Int>::arange(0..n as i64, self.grid.device())
+                .mul_scalar(pixels)
+                .reshape([n, 1, 1]);
+            // Point-major: the 16 rows of a point are adjacent in the selected table.
+            let index = st
+                .flat
+                .iter()
+                .map(|i| (i.clone() + offsets.clone()).reshape([n * p, 1]))
+                .collect();
+            let rows_weights = weights
+                .iter()
+                .map(|w| w.clone().reshape([n * p, 1]))
+                .collect();
+            (
+                Tensor::cat(index, 1).reshape([16 * n * p]),
+                Tensor::cat(rows_weights, 1).reshape([n * p, 1, 16]),
+            )
+        });
+        let elements = (self.gather != Gather::Rows).then_some((st.flat, weights));
         Sampler {
             batch: n,
             out: [ho, wo],
-            reads,
+            gather: self.gather,
+            elements,
+            rows,
         }
     }
 
