@@ -11,9 +11,11 @@ use crate::params::EnergyParams;
 use crate::warp::BSpline;
 
 /// Largest number of feature values one batched warp may touch before the path energy is
-/// evaluated in chunks of frames: bounds the gather indices and autodiff state to a few
-/// hundred MB even for the deep model's 67 × 512² features.
-const CHUNK_ELEMENTS: usize = 1 << 24;
+/// evaluated in chunks of frames. A row-gather warp ([`crate::warp::Gather`]) holds 16 values
+/// per feature value while it runs, so this bounds that buffer to 256 MiB: one 256² frame of
+/// the deep model's 67 channels, or 4 of them at 128² (with 2²⁴, a whole K = 8 path at 128²
+/// went through at once and doubled the morph's peak memory).
+const CHUNK_ELEMENTS: usize = 1 << 22;
 
 /// The path energy of one level: parameters, the grid's operators, and the channel count
 /// `C_tot` of the feature vectors (3 for the RGB model, `3 + C` for the deep one).
