@@ -157,7 +157,7 @@ struct RunArgs {
     #[arg(long, default_value_t = 1e-6, allow_negative_numbers = true)]
     eta: f64,
     /// Deep model: RMS tau each level's VGG features are scaled to (SPEC §4).
-    #[arg(long, default_value_t = 0.5, allow_negative_numbers = true)]
+    #[arg(long, default_value_t = 0.1, allow_negative_numbers = true)]
     feature_rms: f64,
     /// Deep model: feature-only sweeps J_pre after each prolongation.
     #[arg(long, default_value_t = 50)]

@@ -418,7 +418,7 @@ fn deep_morph_with_the_stand_in_weights() {
         serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
     assert_eq!(config["model"], "deep");
     assert_eq!(config["lambda"], 0.002);
-    assert_eq!(config["deep"]["feature_rms"], 0.5);
+    assert_eq!(config["deep"]["feature_rms"], 0.1);
     assert_eq!(config["deep"]["tap_rms"].as_array().unwrap().len(), 5);
     // Frame 0 is A at the working size (RGB part / eta, not the eta-scaled channels).
     let a_work = RgbImage::load(&a)
