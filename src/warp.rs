@@ -11,6 +11,8 @@
 //! [`BSpline::interpolate_position_derivative`]) exist for the gradient checks; the solver
 //! takes its gradients from autodiff.
 
+use std::cell::OnceCell;
+
 use burn::tensor::{IndexingUpdateOp, Int, Tensor};
 
 use crate::grid::Grid;
@@ -39,7 +41,8 @@ pub struct BSpline {
 ///   indices, and on lavapipe it lost updates beyond 65,535 indices (BURN-NOTES).
 /// - [`Gather::RowsFrom`]`(c)`: rows for `c` channels or more, elements below. On ndarray the
 ///   row select's fixed cost (the permute to channels-last and the row-wise backward) only
-///   pays off for wide tensors: rows lose 6× for 3 channels and win 1.7× for 67.
+///   pays off for wide tensors: for a warp and its gradient at 128², rows lose 6× for 3
+///   channels and win 1.7× for 67.
 ///
 /// [`crate::Backend::warp_gather`] says which one a backend gets.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -64,17 +67,24 @@ impl Gather {
 }
 
 /// The spline evaluation at fixed points (see [`BSpline::sampler`]).
+///
+/// The row form of the stencil is built on the first sample that reads rows and kept: with
+/// [`Gather::RowsFrom`] one sampler may serve a 3-channel and a 64-channel block (the deep
+/// model's feature step), and a sampler that only ever reads scalars never builds it.
 #[derive(Clone, Debug)]
 pub struct Sampler {
     batch: usize,
     out: [usize; 2],
     gather: Gather,
-    /// 16 flat indices `[N, 1, P]` and the weights `β(p₀ − i) β(p₁ − j)`, `[N, 1, P]`; present
-    /// unless the gather is [`Gather::Rows`].
-    elements: Option<(Vec<Tensor<3, Int>>, Vec<Tensor<3>>)>,
+    /// `H·W` of the coefficient grid: the row offset between batch items.
+    pixels: usize,
+    /// 16 flat indices `m(i)·W + m(j)`, `[N, 1, P]` each.
+    index: Vec<Tensor<3, Int>>,
+    /// The 16 weights `β(p₀ − i) β(p₁ − j)`, `[N, 1, P]` each.
+    weights: Vec<Tensor<3>>,
     /// Row indices of the channels-last table, `[N·P·16]` point-major, and the weights,
-    /// `[N·P, 1, 16]`; present unless the gather is [`Gather::Elements`].
-    rows: Option<(Tensor<1, Int>, Tensor<3>)>,
+    /// `[N·P, 1, 16]`.
+    rows: OnceCell<(Tensor<1, Int>, Tensor<3>)>,
 }
 
 impl Sampler {
@@ -93,17 +103,17 @@ impl Sampler {
         let [ho, wo] = self.out;
         let p = ho * wo;
         if !self.gather.reads_rows(c) {
-            let (index, weights) = self.elements.as_ref().expect("built for element gathers");
             let coeffs = coeffs.reshape([n, c, h * w]);
-            return index
+            return self
+                .index
                 .iter()
-                .zip(weights)
+                .zip(&self.weights)
                 .map(|(i, wt)| coeffs.clone().gather(2, i.clone().expand([n, c, p])) * wt.clone())
                 .reduce(|acc, term| acc + term)
                 .expect("16 neighbours")
                 .reshape([n, c, ho, wo]);
         }
-        let (index, weights) = self.rows.as_ref().expect("built for row selects");
+        let (index, weights) = self.rows.get_or_init(|| self.row_stencil());
         // The weighted sum over the 16 rows of a point is a `[1, 16] × [16, C]` product:
         // one batched matmul beats a broadcast multiply and a sum 4× on flex.
         weights
@@ -118,6 +128,31 @@ impl Sampler {
             .reshape([n, p, c])
             .swap_dims(1, 2)
             .reshape([n, c, ho, wo])
+    }
+
+    /// The stencil for row selects: indices into the channels-last table `[N·H·W, C]` and
+    /// the weights, 16 per point and adjacent.
+    fn row_stencil(&self) -> (Tensor<1, Int>, Tensor<3>) {
+        let n = self.batch;
+        let np = n * self.out[0] * self.out[1];
+        // Row `m` of batch item `b` is `b·H·W + m`.
+        let offsets = Tensor::<1, Int>::arange(0..n as i64, &self.index[0].device())
+            .mul_scalar(self.pixels as i64)
+            .reshape([n, 1, 1]);
+        let index = self
+            .index
+            .iter()
+            .map(|i| (i.clone() + offsets.clone()).reshape([np, 1]))
+            .collect();
+        let weights = self
+            .weights
+            .iter()
+            .map(|w| w.clone().reshape([np, 1]))
+            .collect();
+        (
+            Tensor::cat(index, 1).reshape([16 * np]),
+            Tensor::cat(weights, 1).reshape([np, 1, 16]),
+        )
     }
 }
 
@@ -259,35 +294,14 @@ impl BSpline {
                 weights.push(w0.clone() * w1.clone());
             }
         }
-        let rows = (self.gather != Gather::Elements).then(|| {
-            let pixels = self.grid.pixels() as i64;
-            let p = ho * wo;
-            // Row `m` of the channels-last table of batch item `b` is `b·H·W + m`.
-            let offsets = Tensor::<1, Int>::arange(0..n as i64, self.grid.device())
-                .mul_scalar(pixels)
-                .reshape([n, 1, 1]);
-            // Point-major: the 16 rows of a point are adjacent in the selected table.
-            let index = st
-                .flat
-                .iter()
-                .map(|i| (i.clone() + offsets.clone()).reshape([n * p, 1]))
-                .collect();
-            let rows_weights = weights
-                .iter()
-                .map(|w| w.clone().reshape([n * p, 1]))
-                .collect();
-            (
-                Tensor::cat(index, 1).reshape([16 * n * p]),
-                Tensor::cat(rows_weights, 1).reshape([n * p, 1, 16]),
-            )
-        });
-        let elements = (self.gather != Gather::Rows).then_some((st.flat, weights));
         Sampler {
             batch: n,
             out: [ho, wo],
             gather: self.gather,
-            elements,
-            rows,
+            pixels: self.grid.pixels(),
+            index: st.flat,
+            weights,
+            rows: OnceCell::new(),
         }
     }
 

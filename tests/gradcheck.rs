@@ -490,9 +490,39 @@ mod parity {
         }
     }
 
+    /// One sampler with `Gather::RowsFrom(4)` reads a 3-channel tensor with scalar gathers
+    /// and an 8-channel one with rows (as the deep model's feature step does with its η and
+    /// VGG blocks), in either order, and both match the scalar-gather evaluation.
+    fn a_threshold_sampler_serves_narrow_and_wide_tensors(backend: Backend) {
+        const SAME: (f64, f64) = (1e-5, 0.0);
+        let n = 2;
+        let mut rng = Rng(7);
+        let phi_host = rng.smooth_deformation(n, H, W, 1.5);
+        let device = device(backend, Precision::F32, false);
+        let grid = Grid::new(H, W, &device, DType::F32).unwrap();
+        let phi = grid.tensor(phi_host, [n, 2, H, W]);
+        let narrow = grid.tensor(rng.smooth_image(n * 3, H, W), [n, 3, H, W]);
+        let wide = grid.tensor(rng.smooth_image(n * 8, H, W), [n, 8, H, W]);
+        let elements = BSpline::with_gather(&grid, Gather::Elements).sampler(phi.clone());
+        let threshold = BSpline::with_gather(&grid, Gather::RowsFrom(4));
+        for order in [[&narrow, &wide], [&wide, &narrow]] {
+            let sampler = threshold.sampler(phi.clone());
+            for coeffs in order {
+                let c = coeffs.dims()[1];
+                check(
+                    &format!("RowsFrom(4) vs elements, {c} channels"),
+                    &values(sampler.sample(coeffs.clone())),
+                    &values(elements.sample(coeffs.clone())),
+                    SAME,
+                );
+            }
+        }
+    }
+
     on_each_backend!(
         autodiff_in_float32_matches_the_float64_reference,
         gather_strategies_agree,
+        a_threshold_sampler_serves_narrow_and_wide_tensors,
     );
 }
 
