@@ -14,7 +14,8 @@ use crate::vgg::{TAP_CHANNELS, TAPS, Vgg19, tap_for};
 pub struct DeepConfig {
     /// `η`, the weight of the RGB channels inside the feature vector. Default 1e-6.
     pub eta: f64,
-    /// `τ`, the RMS every level's VGG tap is scaled to (`--feature-rms`, SPEC §4). Default 0.1, calibrated (README).
+    /// `τ`, the RMS every level's VGG tap is scaled to (`--feature-rms`, SPEC §4). Default 0.1,
+    /// calibrated on the motorcycle stereo pair (README, "The deep model and its feature scale").
     pub feature_rms: f64,
     /// `J_pre`, feature-only sweeps after each prolongation (SPEC §7). Default 50.
     pub pre_sweeps: usize,

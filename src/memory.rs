@@ -7,11 +7,12 @@
 //! estimate 3.4 GiB), and for RGB morphs. Past the fixed part (program, VGG19 weights, the
 //! network's activations on both inputs) it grows with `K · H · W · C_tot` at the finest
 //! level (coarser levels have a quarter of the pixels and at most twice the channels), at
-//! 13–20 bytes per step, pixel and channel; the estimate uses 48 to cover the transients too:
-//! a feature step's row gather holds 16 values per feature value of one frame, and its
-//! backward as many again (128 B per pixel and channel, 2.2 GB at 512² with 67 channels).
+//! about 17 bytes per step, pixel and channel (128² K 4 → K 8); the estimate uses 48 to cover
+//! the transients too: a feature step's row gather holds 16 values per feature value of one
+//! frame, and its backward as many again (128 B per pixel and channel, by that count 2.2 GB
+//! at 512² with 67 channels).
 
-/// Bytes per step, pixel and channel of the finest level (measured 13–20, see above).
+/// Bytes per step, pixel and channel of the finest level (measured about 17, see above).
 const BYTES_PER_STEP_PIXEL_CHANNEL: f64 = 48.0;
 /// The program, the VGG19 weights (80 MB) while they are read and loaded.
 const DEEP_BASE: f64 = 200e6;

@@ -12,9 +12,9 @@ use crate::warp::BSpline;
 
 /// Largest number of feature values one batched warp may touch before the path energy is
 /// evaluated in chunks of frames. A row-gather warp ([`crate::warp::Gather`]) holds 16 values
-/// per feature value while it runs, so this bounds that buffer to 256 MiB: one 256² frame of
-/// the deep model's 67 channels, or 4 of them at 128² (with 2²⁴, a whole K = 8 path at 128²
-/// went through at once and doubled the morph's peak memory).
+/// per feature value while it runs, so this bounds that buffer to about 256 MiB: with the deep
+/// model's 67 channels, 3 frames at a time at 128² and one at 256² and above (with 2²⁴, a
+/// whole K = 8 path at 128² went through at once and doubled the morph's peak memory).
 const CHUNK_ELEMENTS: usize = 1 << 22;
 
 /// The path energy of one level: parameters, the grid's operators, and the channel count
