@@ -79,7 +79,7 @@ fn deep_benches(c: &mut Criterion) {
                 IpalmConfig::default(),
             )
             .unwrap();
-            let mut warm = LevelState::initial(&grid, &layout, f_a, f_b, DEEP_STEPS).unwrap();
+            let mut warm = LevelState::initial(&grid, &layout, f_a, f_b, DEEP_STEPS, 1.0).unwrap();
             for _ in 0..3 {
                 ipalm.sweep(&mut warm, SweepKind::Joint).unwrap();
             }

@@ -1,6 +1,6 @@
 //! The pixel grid a level of the model lives on.
 
-use burn::tensor::{DType, Device, Tensor, TensorData};
+use burn::tensor::{DType, Device, FloatDType, Tensor, TensorData};
 
 use crate::error::{Error, Result};
 use crate::stencil::Matrix;
@@ -14,6 +14,27 @@ pub struct Grid {
     width: usize,
     device: Device,
     dtype: DType,
+    accumulation: Accumulation,
+}
+
+/// How [`Grid::decision_sum`] adds up the values whose sums decide a backtracking test
+/// (SPEC §6, "Floating point").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Accumulation {
+    /// Partial sums along the last axis in the working precision, added in float64: the
+    /// backend computes in float64 (flex, ndarray). The tests need no slack.
+    Float64,
+    /// Everything in float32 (Burn's tree reductions, i.e. pairwise partial sums): the
+    /// backend has no float64 (wgpu). The tests allow a relative slack.
+    Float32,
+}
+
+impl Accumulation {
+    fn of(device: &Device, dtype: DType) -> Self {
+        let float64 = dtype == DType::F64
+            || crate::Backend::of(device).is_some_and(|b| b.supports(crate::Precision::F64));
+        if float64 { Self::Float64 } else { Self::Float32 }
+    }
 }
 
 impl Grid {
@@ -33,7 +54,27 @@ impl Grid {
             width,
             device: device.clone(),
             dtype,
+            accumulation: Accumulation::of(device, dtype),
         })
+    }
+
+    /// How decision sums are accumulated on this grid's backend.
+    pub fn accumulation(&self) -> Accumulation {
+        self.accumulation
+    }
+
+    /// The sum of every entry of `t`, detached, as a `[1]` tensor in float64 where the backend
+    /// has it (SPEC §6: the scalars a decrease test or the safeguard compares). Each line
+    /// along the last axis (at most a few hundred values) is summed in the working precision,
+    /// the partial sums in float64: a float32 sum of `67·256²` values is off by ~6e-6
+    /// relative, enough to turn accept/reject near convergence into noise.
+    pub fn decision_sum<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
+        let t = t.detach();
+        match self.accumulation {
+            Accumulation::Float64 if D >= 2 => t.sum_dim(D - 1).cast(FloatDType::F64).sum(),
+            Accumulation::Float64 => t.cast(FloatDType::F64).sum(),
+            Accumulation::Float32 => t.sum(),
+        }
     }
 
     /// Rows `H`.
@@ -65,6 +106,7 @@ impl Grid {
     pub fn with_device(&self, device: &Device) -> Self {
         Self {
             device: device.clone(),
+            accumulation: Accumulation::of(device, self.dtype),
             ..self.clone()
         }
     }

@@ -7,13 +7,12 @@ use burn::tensor::Tensor;
 use crate::error::{Error, Result};
 
 /// A group of channels with its own Lipschitz estimate and backtracking in the feature step
-/// (SPEC §6): the deep model's η-scaled RGB and VGG channels differ in scale by `η²`.
+/// (SPEC §6): the deep model's η-scaled RGB and VGG channels have gradients that differ in
+/// size by `η`, so one shared step would be decided by the VGG block alone.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ChannelBlock {
     /// The block's channels.
     pub channels: Range<usize>,
-    /// The block's typical magnitude `s`; its initial Lipschitz estimate is `s²/(H·W)`.
-    pub scale: f64,
 }
 
 /// The channel layout of the feature vectors `f_k` of one model: `C_tot` channels, the
@@ -31,10 +30,7 @@ impl FeatureLayout {
         Self {
             channels: 3,
             rgb_scale: 1.0,
-            blocks: vec![ChannelBlock {
-                channels: 0..3,
-                scale: 1.0,
-            }],
+            blocks: vec![ChannelBlock { channels: 0..3 }],
         }
     }
 
@@ -52,13 +48,9 @@ impl FeatureLayout {
             channels: 3 + features,
             rgb_scale: eta,
             blocks: vec![
-                ChannelBlock {
-                    channels: 0..3,
-                    scale: eta,
-                },
+                ChannelBlock { channels: 0..3 },
                 ChannelBlock {
                     channels: 3..3 + features,
-                    scale: 1.0,
                 },
             ],
         })

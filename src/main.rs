@@ -273,6 +273,28 @@ fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
     Ok((parse(h)?, parse(w)?))
 }
 
+/// Exit status of a morph stopped by a NaN or infinity in the optimisation; its outputs were
+/// written from the last finite iterate.
+const EXIT_NONFINITE: i32 = 3;
+/// Exit status of a morph stopped by Ctrl-C; its outputs were written.
+const EXIT_INTERRUPTED: i32 = 130;
+
+/// `DEEPMORPH_INJECT_NONFINITE=LEVEL:SWEEP` makes the solver meet a NaN after that sweep: the
+/// tests' way to check the non-finite path end to end (outputs written, exit status 3).
+fn injected_fault() -> Result<Option<(usize, usize)>> {
+    let Some(value) = std::env::var_os("DEEPMORPH_INJECT_NONFINITE") else {
+        return Ok(None);
+    };
+    let value = value.to_string_lossy();
+    let parsed = value
+        .split_once(':')
+        .and_then(|(l, s)| Some((l.trim().parse().ok()?, s.trim().parse().ok()?)));
+    match parsed {
+        Some(fault) => Ok(Some(fault)),
+        None => bail!("DEEPMORPH_INJECT_NONFINITE={value} is not LEVEL:SWEEP"),
+    }
+}
+
 fn main() {
     if let Err(e) = run(Cli::parse()) {
         eprintln!("Error: {e:#}");
@@ -457,7 +479,10 @@ fn morph(
         },
         ..MultilevelConfig::default()
     };
-    let driver = Multilevel::new(config).map_err(|e| anyhow::anyhow!("{e}"))?;
+    let mut driver = Multilevel::new(config).map_err(|e| anyhow::anyhow!("{e}"))?;
+    if let Some((level, sweep)) = injected_fault()? {
+        driver = driver.inject_nonfinite(level, sweep);
+    }
     let estimate = check_memory(args, backend, a.height(), a.width())?;
     let out = prepare_output(&args.output, inputs, &output_names(args.steps()))?;
 
@@ -537,12 +562,7 @@ fn morph(
     save_deformations(&out, morph.state.deformations())?;
     let csv = log.to_csv();
     write_atomically(&out.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
-    let termination = match morph.termination {
-        Termination::Completed => "completed".to_string(),
-        Termination::Interrupted { level, sweep } => {
-            format!("interrupted at level {level}, sweep {sweep}")
-        }
-    };
+    let termination = morph.termination.to_string();
     let record = RunRecord {
         program: "deepmorph".into(),
         version: env!("CARGO_PKG_VERSION").into(),
@@ -586,6 +606,13 @@ fn morph(
     save_composed(&out, composed.clone())?;
     let metrics = folder.metrics(composed, None)?;
     write_metrics(&out, &metrics)?;
+    if let Termination::NonFinite { .. } = morph.termination {
+        eprintln!(
+            "Error: {termination}; wrote every output from that iterate to {}",
+            out.display()
+        );
+        std::process::exit(EXIT_NONFINITE);
+    }
     if !args.quiet {
         let last = log.records.last().map_or(f64::NAN, |r| r.energy);
         eprintln!(
@@ -598,7 +625,7 @@ fn morph(
         }
     }
     if matches!(morph.termination, Termination::Interrupted { .. }) {
-        std::process::exit(130);
+        std::process::exit(EXIT_INTERRUPTED);
     }
     Ok(())
 }

@@ -350,6 +350,9 @@ mod tests {
             lipschitz_phi: Vec::new(),
             lipschitz_f: Vec::new(),
             seconds: 0.0,
+            restarts: 0,
+            drops_phi: 0,
+            drops_f: 0,
         };
         let records = [
             record(0, 0, 9.0, 4.0, 5.0),

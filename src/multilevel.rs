@@ -19,15 +19,6 @@ use crate::optim::ipalm::{
 use crate::params::EnergyParams;
 use crate::resample::{Resize, prolongate_deformation};
 
-/// How each level's stored Lipschitz estimates start.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum InitialLipschitz {
-    /// `s²/(H·W)` per SPEC §6 (the default).
-    Scaled,
-    /// One constant for every estimate (the golden multilevel case uses 1).
-    Constant(f64),
-}
-
 /// Settings of a multilevel morph (SPEC §7, §9).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct MultilevelConfig {
@@ -42,8 +33,6 @@ pub struct MultilevelConfig {
     pub params: EnergyParams,
     /// The solver's settings.
     pub ipalm: IpalmConfig,
-    /// Start of the Lipschitz estimates on each level.
-    pub initial_lipschitz: InitialLipschitz,
 }
 
 impl Default for MultilevelConfig {
@@ -54,7 +43,6 @@ impl Default for MultilevelConfig {
             sweeps: 250,
             params: EnergyParams::rgb(),
             ipalm: IpalmConfig::default(),
-            initial_lipschitz: InitialLipschitz::Scaled,
         }
     }
 }
@@ -71,9 +59,6 @@ impl MultilevelConfig {
         }
         if self.levels < 1 {
             return Err(Error::invalid("levels", self.levels, "at least 1"));
-        }
-        if let InitialLipschitz::Constant(l) = self.initial_lipschitz {
-            crate::params::positive("initial L", l)?;
         }
         self.params.validate()?;
         self.ipalm.validate()
@@ -215,7 +200,7 @@ impl<A: Observer, B: Observer> Observer for (A, B) {
 }
 
 /// Why the driver stopped.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Termination {
     /// Every level ran its `J` sweeps.
     Completed,
@@ -226,6 +211,46 @@ pub enum Termination {
         /// Sweeps done on that level.
         sweep: usize,
     },
+    /// A NaN or infinity appeared in sweep `sweep` of level `level` (or in the energy after
+    /// it); the state is the last finite iterate, the one before that sweep.
+    NonFinite {
+        /// Level at which it happened.
+        level: usize,
+        /// The sweep in which it happened (0: the level's initial state), counted in the
+        /// phase `phase`.
+        sweep: usize,
+        /// The joint sweeps or the deep model's feature-only ones.
+        phase: Phase,
+        /// Which quantity, and at which step `k`.
+        what: String,
+    },
+}
+
+impl std::fmt::Display for Termination {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Completed => f.write_str("completed"),
+            Self::Interrupted { level, sweep } => {
+                write!(f, "interrupted at level {level}, sweep {sweep}")
+            }
+            Self::NonFinite {
+                level,
+                sweep,
+                phase,
+                what,
+            } => {
+                let kind = match phase {
+                    Phase::Joint => "",
+                    Phase::Features => "feature-only ",
+                };
+                write!(
+                    f,
+                    "stopped by a non-finite value at level {level}, {kind}sweep {sweep} ({what}); \
+                     the state is the last finite iterate, before that sweep"
+                )
+            }
+        }
+    }
 }
 
 /// The result of a morph.
@@ -255,10 +280,13 @@ impl Morph {
     }
 }
 
-/// The multilevel driver of the RGB model.
+/// The multilevel driver.
 #[derive(Clone, Debug)]
 pub struct Multilevel {
     config: MultilevelConfig,
+    /// A fault to inject for testing the non-finite path (see
+    /// [`inject_nonfinite`](Self::inject_nonfinite)).
+    inject_nonfinite: Option<(usize, usize)>,
 }
 
 impl Multilevel {
@@ -269,7 +297,20 @@ impl Multilevel {
     /// If a setting is out of range.
     pub fn new(config: MultilevelConfig) -> Result<Self> {
         config.validate()?;
-        Ok(Self { config })
+        Ok(Self {
+            config,
+            inject_nonfinite: None,
+        })
+    }
+
+    /// For tests of what happens when the optimisation meets a NaN: after sweep `sweep` of
+    /// level `level` (of whichever phase runs it) the interior frame `f_1` is made NaN, as a
+    /// numerical failure would. The driver must then stop with [`Termination::NonFinite`]
+    /// and the last finite iterate.
+    #[doc(hidden)]
+    pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
+        self.inject_nonfinite = Some((level, sweep));
+        self
     }
 
     /// The settings.
@@ -344,7 +385,7 @@ impl Multilevel {
             };
             let prolongated = previous.is_some();
             let mut state = match previous.take() {
-                None => LevelState::initial(&grid, &layout, f_a, f_b, k)?,
+                None => LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,
                 Some((coarse, coarse_state, coarse_layout)) => {
                     let up = Resize::new(&coarse, &grid);
                     let mut f = Vec::with_capacity(k + 1);
@@ -372,32 +413,41 @@ impl Multilevel {
                     f.push(f_b);
                     let phi = prolongate_deformation(&coarse, &grid, coarse_state.deformations());
                     let phi = (0..k).map(|i| phi.clone().narrow(0, i, 1)).collect();
-                    let (l_phi, l_f) = initial_lipschitz(&grid, &layout, k);
+                    let (l_phi, l_f) = initial_lipschitz(&grid, &layout, k, cfg.params.delta);
                     LevelState::new(f, phi, l_phi, l_f)?
                 }
             };
-            if let InitialLipschitz::Constant(l) = cfg.initial_lipschitz {
-                state.l_phi.iter_mut().for_each(|x| *x = l);
-                state.l_f.iter_mut().flatten().for_each(|x| *x = l);
-            }
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
 
+            let evaluate = |state: &LevelState| -> std::result::Result<[f64; 3], String> {
+                let value = ipalm.energy(state);
+                let parts = to_host(Tensor::cat(
+                    vec![
+                        value.total,
+                        value.regularizer.clone().mul_scalar(k as f64),
+                        value.data.clone().mul_scalar(k as f64 / cfg.params.delta),
+                    ],
+                    0,
+                ));
+                let (total, per_step) = (parts[0], &parts[1..]);
+                if total.is_finite() {
+                    let sum = |v: &[f64]| v.iter().sum::<f64>();
+                    return Ok([total, sum(&per_step[..k]), sum(&per_step[k..])]);
+                }
+                let bad = (0..k)
+                    .find(|&i| !(per_step[i].is_finite() && per_step[k + i].is_finite()))
+                    .map_or(String::new(), |i| {
+                        format!(
+                            " (step k = {}: K·R = {}, (K/δ)·D = {})",
+                            i + 1,
+                            per_step[i],
+                            per_step[k + i]
+                        )
+                    });
+                Err(format!("the path energy is {total}{bad}"))
+            };
             let mut report_sweep =
-                |phase: Phase, sweep: usize, report: Option<&SweepReport>, state: &LevelState| {
-                    let value = ipalm.energy(state);
-                    let numbers = to_host(Tensor::cat(
-                        vec![
-                            value.total,
-                            value.regularizer.sum().mul_scalar(k as f64),
-                            value.data.sum().mul_scalar(k as f64 / cfg.params.delta),
-                        ],
-                        0,
-                    ));
-                    if !numbers[0].is_finite() {
-                        return Err(Error::NonFinite {
-                            what: format!("energy {} at level {level}, sweep {sweep}", numbers[0]),
-                        });
-                    }
+                |phase: Phase, sweep: usize, report: Option<&SweepReport>, state: &LevelState, numbers: [f64; 3]| {
                     observer.sweep(&SweepEvent {
                         level,
                         levels: sizes.len(),
@@ -415,49 +465,56 @@ impl Multilevel {
                         state,
                         seconds: started.elapsed().as_secs_f64(),
                     });
-                    Ok(())
                 };
-            let where_ = |phase: Phase, sweep: usize| {
-                move |e: Error| match e {
-                    Error::NonFinite { what } => Error::NonFinite {
-                        what: match phase {
-                            Phase::Joint => format!("level {level}, sweep {sweep}: {what}"),
-                            Phase::Features => {
-                                format!("level {level}, feature-only sweep {sweep}: {what}")
-                            }
-                        },
-                    },
-                    other => other,
-                }
-            };
-            let mut stopped = None;
             // SPEC §7: after a prolongation the deep model first fits the features to the
             // prolongated deformations (pointless on the first level, where the convex
             // combination is already optimal for φ = Id).
             let pre = if prolongated { model.pre_sweeps() } else { 0 };
-            if pre > 0 {
-                report_sweep(Phase::Features, 0, None, &state)?;
-                for sweep in 1..=pre {
-                    let report = ipalm
-                        .sweep(&mut state, SweepKind::FeaturesOnly)
-                        .map_err(where_(Phase::Features, sweep))?;
-                    report_sweep(Phase::Features, sweep, Some(&report), &state)?;
-                    if interrupt.load(Ordering::Relaxed) {
-                        stopped = Some(0);
-                        break;
+            let phases = [(Phase::Features, pre, SweepKind::FeaturesOnly), (Phase::Joint, cfg.sweeps, SweepKind::Joint)];
+            let mut stopped = None;
+            'phases: for (phase, sweeps, kind) in phases {
+                if sweeps == 0 && phase == Phase::Features {
+                    continue;
+                }
+                match evaluate(&state) {
+                    Ok(numbers) => report_sweep(phase, 0, None, &state, numbers),
+                    Err(what) => {
+                        stopped = Some(Termination::NonFinite { level, sweep: 0, phase, what });
+                        break 'phases;
                     }
                 }
-            }
-            if stopped.is_none() {
-                report_sweep(Phase::Joint, 0, None, &state)?;
-                for sweep in 1..=cfg.sweeps {
-                    let report = ipalm
-                        .sweep(&mut state, SweepKind::Joint)
-                        .map_err(where_(Phase::Joint, sweep))?;
-                    report_sweep(Phase::Joint, sweep, Some(&report), &state)?;
+                for sweep in 1..=sweeps {
+                    // The last finite iterate: cheap to keep, these handles are the tensors
+                    // the sweep moves into `f_prev` and `phi_prev` anyway.
+                    let before = (state.f.clone(), state.phi.clone());
+                    let outcome = match ipalm.sweep(&mut state, kind) {
+                        Ok(report) => Ok(report),
+                        Err(Error::NonFinite { what }) => Err(what),
+                        Err(other) => return Err(other),
+                    };
+                    if self.inject_nonfinite == Some((level, sweep)) {
+                        state.f[1] = state.f[1].clone().mul_scalar(f64::NAN);
+                    }
+                    match outcome.and_then(|report| evaluate(&state).map(|n| (report, n))) {
+                        Ok((report, numbers)) => {
+                            report_sweep(phase, sweep, Some(&report), &state, numbers);
+                        }
+                        Err(what) => {
+                            let (f, phi) = before;
+                            state.f_prev = f.clone();
+                            state.phi_prev = phi.clone();
+                            state.f = f;
+                            state.phi = phi;
+                            stopped = Some(Termination::NonFinite { level, sweep, phase, what });
+                            break 'phases;
+                        }
+                    }
                     if interrupt.load(Ordering::Relaxed) {
-                        stopped = Some(sweep);
-                        break;
+                        stopped = Some(Termination::Interrupted {
+                            level,
+                            sweep: if phase == Phase::Joint { sweep } else { 0 },
+                        });
+                        break 'phases;
                     }
                 }
             }
@@ -468,10 +525,7 @@ impl Multilevel {
                     state,
                     anisotropy,
                     layout,
-                    termination: match stopped {
-                        Some(sweep) => Termination::Interrupted { level, sweep },
-                        None => Termination::Completed,
-                    },
+                    termination: stopped.unwrap_or(Termination::Completed),
                 });
             }
             previous = Some((grid, state, layout));

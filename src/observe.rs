@@ -31,6 +31,12 @@ pub struct EnergyRecord {
     pub lipschitz_f: Vec<f64>,
     /// Seconds since the start.
     pub seconds: f64,
+    /// Deformation steps of the sweep whose inertia the safeguard restarted (SPEC §6).
+    pub restarts: usize,
+    /// Deformation steps of the sweep that were dropped (`φ_k` kept).
+    pub drops_phi: usize,
+    /// Feature blocks of the sweep whose backtracking gave up (values kept).
+    pub drops_f: usize,
 }
 
 /// Collects an [`EnergyRecord`] per sweep.
@@ -43,7 +49,9 @@ pub struct EnergyLog {
 impl EnergyLog {
     /// The log as CSV, with a header line. Lipschitz constants are `;`-separated lists.
     pub fn to_csv(&self) -> String {
-        let mut out = String::from("level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds\n");
+        let mut out = String::from(
+            "level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds,restarts,drops_phi,drops_f\n",
+        );
         let list = |v: &[f64]| {
             v.iter()
                 .map(|x| format!("{x:.6e}"))
@@ -53,7 +61,7 @@ impl EnergyLog {
         for r in &self.records {
             let _ = writeln!(
                 out,
-                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3}",
+                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3},{},{},{}",
                 r.level,
                 r.height,
                 r.width,
@@ -63,13 +71,17 @@ impl EnergyLog {
                 r.data,
                 list(&r.lipschitz_phi),
                 list(&r.lipschitz_f),
-                r.seconds
+                r.seconds,
+                r.restarts,
+                r.drops_phi,
+                r.drops_f
             );
         }
         out
     }
 
-    /// Parses what [`to_csv`](Self::to_csv) wrote.
+    /// Parses what [`to_csv`](Self::to_csv) wrote (also the 10-column files of earlier
+    /// versions, without the restart and drop counts).
     ///
     /// # Errors
     ///
@@ -91,7 +103,7 @@ impl EnergyLog {
             .map(|(i, line)| {
                 let bad = || format!("line {}: cannot parse `{line}`", i + 2);
                 let cols: Vec<&str> = line.split(',').collect();
-                if cols.len() != 10 {
+                if cols.len() != 10 && cols.len() != 13 {
                     return Err(bad());
                 }
                 let int = |c: &str| c.parse::<usize>().map_err(|_| bad());
@@ -107,6 +119,9 @@ impl EnergyLog {
                     lipschitz_phi: list(cols[7]).map_err(|_| bad())?,
                     lipschitz_f: list(cols[8]).map_err(|_| bad())?,
                     seconds: num(cols[9])?,
+                    restarts: cols.get(10).map_or(Ok(0), |c| int(c))?,
+                    drops_phi: cols.get(11).map_or(Ok(0), |c| int(c))?,
+                    drops_f: cols.get(12).map_or(Ok(0), |c| int(c))?,
                 })
             })
             .collect::<std::result::Result<_, _>>()?;
@@ -142,6 +157,9 @@ impl Observer for EnergyLog {
             lipschitz_phi,
             lipschitz_f,
             seconds: e.seconds,
+            restarts: e.report.map_or(0, |r| r.restarts()),
+            drops_phi: e.report.map_or(0, |r| r.deformation_drops()),
+            drops_f: e.report.map_or(0, |r| r.feature_drops()),
         });
     }
 }
@@ -220,14 +238,16 @@ impl Observer for Progress {
             }
         }
         if self.verbosity == Verbosity::Verbose {
-            let (trials, dropped) = e.report.map_or((0, 0), |r| {
+            let (trials, restarts, drops_phi, drops_f) = e.report.map_or((0, 0, 0, 0), |r| {
                 (
                     r.deformation.iter().map(|s| s.trials).sum::<usize>(),
-                    r.deformation.iter().filter(|s| s.dropped).count(),
+                    r.restarts(),
+                    r.deformation_drops(),
+                    r.feature_drops(),
                 )
             });
             eprintln!(
-                "level {} ({}x{}) {}sweep {:>4}/{}: E = {:.6e} (R {:.4e}, D {:.4e}), phi trials {trials}, dropped {dropped}, {:.1} s",
+                "level {} ({}x{}) {}sweep {:>4}/{}: E = {:.6e} (R {:.4e}, D {:.4e}), phi trials {trials}, restarts {restarts}, dropped phi {drops_phi} f {drops_f}, {:.1} s",
                 e.level,
                 e.grid.height(),
                 e.grid.width(),

@@ -232,6 +232,78 @@ fn interrupt_writes_outputs() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A NaN met by the solver (injected after sweep 2 of level 1) still writes every output,
+/// from the last finite iterate, says where it happened, and exits with status 3.
+#[test]
+fn a_nonfinite_value_writes_outputs_and_exits_3() {
+    let dir = scratch("nonfinite");
+    let out = dir.join("out");
+    let output = deepmorph()
+        .args(["demo", "--size", "32", "-o"])
+        .arg(&out)
+        .args(["-K", "3", "--levels", "2", "--sweeps", "4", "--backend", "flex"])
+        .env("DEEPMORPH_INJECT_NONFINITE", "1:2")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(3), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(
+        stderr.contains("non-finite value at level 1, sweep 2") && stderr.contains("NaN"),
+        "{stderr}"
+    );
+    for name in deepmorph::output::output_names(3) {
+        assert!(out.join(&name).is_file(), "missing {name}");
+    }
+    let (_, phi) = load_deformations(&out).unwrap();
+    assert!(phi.iter().all(|v| v.is_finite()));
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    let termination = config["termination"].as_str().unwrap();
+    assert!(termination.contains("non-finite value at level 1, sweep 2"), "{termination}");
+    // The energy log ends with the last finite sweep.
+    let log = EnergyLog::from_csv(&std::fs::read_to_string(out.join("energy.csv")).unwrap())
+        .unwrap();
+    let last = log.records.last().unwrap();
+    assert_eq!((last.level, last.sweep), (1, 1));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `energy.csv` and the `-v` log count the safeguard's restarts and the dropped steps of every
+/// sweep (SPEC §6).
+#[test]
+fn restarts_and_drops_are_logged() {
+    let dir = scratch("restarts");
+    let out = dir.join("out");
+    let output = deepmorph()
+        .args(["demo", "--size", "32", "-v", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .output()
+        .unwrap();
+    assert!(output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    let sweep_lines: Vec<&str> = stderr.lines().filter(|l| l.contains("sweep")).collect();
+    assert!(
+        sweep_lines
+            .iter()
+            .filter(|l| l.contains("/3:"))
+            .all(|l| l.contains("restarts ") && l.contains("dropped phi ")),
+        "{stderr}"
+    );
+    let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
+    assert!(
+        csv.lines()
+            .next()
+            .unwrap()
+            .ends_with(",restarts,drops_phi,drops_f"),
+        "{csv}"
+    );
+    let log = EnergyLog::from_csv(&csv).unwrap();
+    assert_eq!(log.records.len(), 8);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// The backends compiled into this build that can run here, the reference first.
 fn compiled_backends() -> Vec<Backend> {
     let reference = common::reference_backend();

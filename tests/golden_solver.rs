@@ -10,7 +10,7 @@ use std::sync::atomic::AtomicBool;
 
 use deepmorph::layout::FeatureLayout;
 use deepmorph::multilevel::{
-    InitialLipschitz, Multilevel, MultilevelConfig, Observer, SweepEvent, Termination,
+    Multilevel, MultilevelConfig, Observer, SweepEvent, Termination,
 };
 use deepmorph::optim::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport};
 use deepmorph::optim::prox::{LinearisedData, linearise};
@@ -247,8 +247,7 @@ fn multilevel_rgb(backend: Backend) {
             ..IpalmConfig::default()
         },
         // The case's README says "all stored L = 1", but its L_phi_final (0.0041 = 2 · 0.9⁴ /
-        // 320 on the 16×20 level) shows the s²/(H·W) start that SPEC §6 prescribes.
-        initial_lipschitz: InitialLipschitz::Scaled,
+        // 320 on the 16×20 level) shows the 1/(H·W) start that SPEC §6 prescribes.
     };
     let input = |name: &str| -> Tensor<4> { tensor(case.golden.input(name), &case.device, F32) };
     let mut log = EnergyLog(Vec::new());

@@ -45,8 +45,16 @@ pub fn data_term_from_coefficients(
 /// - `warped`: `[N, C, H, W]`, `f`: `[N, C, H, W]`
 /// - output: `[N]`
 pub fn data_term_from_warped(warped: Tensor<4>, f: Tensor<4>, c_tot: usize) -> Tensor<1> {
-    let [n, c, h, w] = f.dims();
-    let residual = warped - f;
+    data_term_from_residual(warped - f, c_tot)
+}
+
+/// [`data_term`] from the residual `r = T[f̃, φ] − f`.
+///
+/// # Shapes
+/// - `residual`: `[N, C, H, W]`
+/// - output: `[N]`
+pub fn data_term_from_residual(residual: Tensor<4>, c_tot: usize) -> Tensor<1> {
+    let [n, c, h, w] = residual.dims();
     let scale = 1.0 / (2.0 * c_tot as f64 * (h * w) as f64);
     residual
         .square()

@@ -13,8 +13,21 @@ use crate::energy::density::{density, density_gradient};
 /// - output: `[N]`
 pub fn regularizer(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<1> {
     let [n, _, h, w] = phi.dims();
-    let weighted = a * density(&jacobian(phi), lambda, mu);
-    weighted.reshape([n, h * w]).mean_dim(1).reshape([n])
+    weighted_density(phi, a, lambda, mu)
+        .reshape([n, h * w])
+        .mean_dim(1)
+        .reshape([n])
+}
+
+/// `a · W(J(φ))` at every pixel: the summand of [`regularizer`], for sums accumulated
+/// elsewhere (the solver's decisions add it up in float64).
+///
+/// # Shapes
+/// - `phi`: `[N, 2, H, W]`
+/// - `a`: `[N, H, W]`
+/// - output: `[N, H, W]`
+pub fn weighted_density(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<3> {
+    a * density(&jacobian(phi), lambda, mu)
 }
 
 /// The hand-derived `∂R/∂φ`: `a ∂W/∂J / (H·W)` chained through the adjoint of the forward

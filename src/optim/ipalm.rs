@@ -4,30 +4,37 @@
 //! ([`Ipalm::sweep`]) on a [`LevelState`]; the loop over sweeps, termination, progress and
 //! interruption belong to the caller (the multilevel driver), as in argmin's split between
 //! solver and executor.
+//!
+//! Every accept/reject decision compares scalars summed by [`Grid::decision_sum`]: in
+//! float64 on the CPU backends (no slack), in float32 with the relative slack
+//! [`Backtracking::float32_slack`] on wgpu. Each trial reads its scalars back in one
+//! transfer.
 
 use burn::tensor::Tensor;
 
-use crate::deformation::{admissible_each, is_admissible};
-use crate::energy::data::{data_term_from_coefficients, data_term_from_warped};
+use crate::deformation::{is_admissible, jacobian};
+use crate::energy::data::data_term_from_residual;
 use crate::energy::path::{EnergyValue, PathEnergy};
-use crate::energy::regularizer::regularizer;
+use crate::energy::regularizer::{regularizer, weighted_density};
 use crate::error::{Error, Result};
-use crate::grid::Grid;
+use crate::grid::{Accumulation, Grid};
 use crate::io::to_host;
 use crate::layout::FeatureLayout;
-use crate::optim::backtracking::Backtracking;
+use crate::optim::backtracking::{Backtracking, Search, Trial};
 use crate::optim::prox::{LinearisedData, linearise};
 use crate::params::EnergyParams;
 use crate::sobel::Sobel;
+use crate::warp::Sampler;
 
 /// The solver's settings beyond the energy (SPEC §6, §9).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct IpalmConfig {
     /// Inertial extrapolation `β`, in `[0, 1)`. Default `1/√2`.
     pub beta: f64,
-    /// The safeguard of SPEC §6: after a deformation step is accepted, keep doubling `L`
-    /// while the true local energy is above its value at the current `φ_k`. Default on;
-    /// off is the paper's plain algorithm (and the golden sweeps).
+    /// The safeguard of SPEC §6: after a deformation step is accepted, compare the true
+    /// local energy with its value at the current `φ_k`; on a rise restart the inertia of
+    /// that `k`, then double `L` while it still rises. Default on; off is the paper's plain
+    /// algorithm (and the golden sweeps).
     pub safeguard: bool,
     /// Doublings of the safeguard before the step is dropped (`φ_k` kept). Default 30.
     pub safeguard_max: usize,
@@ -55,6 +62,13 @@ impl IpalmConfig {
     pub fn validate(&self) -> Result<()> {
         if !(0.0..1.0).contains(&self.beta) {
             return Err(Error::invalid("beta", self.beta, "in [0, 1)"));
+        }
+        if self.safeguard_max > 1000 {
+            return Err(Error::invalid(
+                "safeguard_max",
+                self.safeguard_max,
+                "in 0..=1000 (L doubles per step)",
+            ));
         }
         self.backtracking.validate()
     }
@@ -114,7 +128,7 @@ impl LevelState {
     }
 
     /// The initial state of SPEC §6/§7: `φ_k = Id`, `f_k = (1 − k/K) f_A + (k/K) f_B`, prev
-    /// = current, and the initial Lipschitz estimates `s²/(H·W)` of each block.
+    /// = current, and the initial Lipschitz estimates of [`initial_lipschitz`].
     ///
     /// # Shapes
     /// - `f_a`, `f_b`: `[1, C_tot, H, W]`
@@ -124,6 +138,7 @@ impl LevelState {
         f_a: Tensor<4>,
         f_b: Tensor<4>,
         k: usize,
+        delta: f64,
     ) -> Result<Self> {
         let f = (0..=k)
             .map(|step| {
@@ -136,7 +151,7 @@ impl LevelState {
             })
             .collect();
         let phi = vec![grid.identity(1); k];
-        let (l_phi, l_f) = initial_lipschitz(grid, layout, k);
+        let (l_phi, l_f) = initial_lipschitz(grid, layout, k, delta);
         Self::new(f, phi, l_phi, l_f)
     }
 
@@ -156,20 +171,21 @@ impl LevelState {
     }
 }
 
-/// The initial estimates `L = s²/(H·W)` (SPEC §6): `K` values of `L_φ` (`s = 1`) and, per
-/// interior frame, one per block (`s` = the block's scale).
+/// The initial estimates of SPEC §6 on a level: `L_φ,k = 1/(H·W)` and, for every feature
+/// block, `L_f,k = 2K/(δ·C_tot·H·W)`, the curvature of `(K/δ)(D_k + D_{k+1})` in `f_k` with
+/// `‖T‖ ≈ 1`, whatever the block's scale.
 pub fn initial_lipschitz(
     grid: &Grid,
     layout: &FeatureLayout,
     k: usize,
+    delta: f64,
 ) -> (Vec<f64>, Vec<Vec<f64>>) {
     let pixels = grid.pixels() as f64;
-    let l_f: Vec<f64> = layout
-        .blocks()
-        .iter()
-        .map(|b| b.scale * b.scale / pixels)
-        .collect();
-    (vec![1.0 / pixels; k], vec![l_f; k.saturating_sub(1)])
+    let l_f = 2.0 * k as f64 / (delta * layout.channels() as f64 * pixels);
+    (
+        vec![1.0 / pixels; k],
+        vec![vec![l_f; layout.blocks().len()]; k.saturating_sub(1)],
+    )
 }
 
 /// Which steps a sweep runs.
@@ -184,12 +200,16 @@ pub enum SweepKind {
 /// What the deformation step of one `k` did.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DeformationStep {
-    /// The accepted (stored) `L_φ,k`.
+    /// The `L_φ,k` stored for the next sweep: the one the backtracking accepted (not the
+    /// safeguard's doubled value), or the one the step started from if it was dropped.
     pub lipschitz: f64,
-    /// Trial values of `L` until acceptance (1 = the first trial was accepted).
+    /// Trial values of `L` of the backtracking (1 = the first trial was accepted), counting
+    /// both searches when the inertia was restarted.
     pub trials: usize,
     /// How many of those trials gave an inadmissible `φ_new`.
     pub inadmissible_trials: usize,
+    /// Whether the safeguard restarted the inertia (SPEC §6: `φ̃ = φ_k`).
+    pub restarted: bool,
     /// Doublings of `L` by the safeguard after acceptance.
     pub safeguard_doublings: usize,
     /// Whether the step was dropped (`φ_k` kept): backtracking or safeguard exhausted.
@@ -199,10 +219,12 @@ pub struct DeformationStep {
 /// What the feature step of one `k` did, per block.
 #[derive(Clone, Debug, PartialEq)]
 pub struct FeatureStep {
-    /// The accepted (stored) `L_f,k` of each block.
+    /// The `L_f,k` stored for each block: accepted, or the starting one if it gave up.
     pub lipschitz: Vec<f64>,
     /// Trials of each block until acceptance.
     pub trials: Vec<usize>,
+    /// Whether each block's search gave up (its values kept).
+    pub dropped: Vec<bool>,
 }
 
 /// The record of one sweep.
@@ -217,6 +239,26 @@ pub struct SweepReport {
     pub features: Vec<FeatureStep>,
 }
 
+impl SweepReport {
+    /// Deformation steps whose inertia the safeguard restarted.
+    pub fn restarts(&self) -> usize {
+        self.deformation.iter().filter(|s| s.restarted).count()
+    }
+
+    /// Deformation steps dropped (`φ_k` kept).
+    pub fn deformation_drops(&self) -> usize {
+        self.deformation.iter().filter(|s| s.dropped).count()
+    }
+
+    /// Feature blocks whose search gave up.
+    pub fn feature_drops(&self) -> usize {
+        self.features
+            .iter()
+            .map(|s| s.dropped.iter().filter(|&&d| d).count())
+            .sum()
+    }
+}
+
 /// The iPALM solver on one level.
 #[derive(Clone, Debug)]
 pub struct Ipalm {
@@ -227,14 +269,164 @@ pub struct Ipalm {
     config: IpalmConfig,
 }
 
-/// One number read back from the device.
-fn scalar(t: Tensor<1>) -> f64 {
-    to_host(t)[0]
+/// The pieces of `K·R[·, a_k]` and `e(·)` of one deformation step (SPEC §6 step 2).
+struct DeformationProblem<'a> {
+    ipalm: &'a Ipalm,
+    /// `a_k`, `[1, H, W]`.
+    a: Tensor<3>,
+    /// `P f_k`, `[1, C, H, W]`.
+    coeffs_k: Tensor<4>,
+    /// `f_{k−1}`, `[1, C, H, W]`.
+    f_km1: Tensor<4>,
+    /// `K`.
+    steps: f64,
 }
 
-/// Several numbers read back at once (one synchronisation).
-fn scalars(parts: Vec<Tensor<1>>) -> Vec<f64> {
-    to_host(Tensor::cat(parts, 0))
+/// A deformation step linearised around a point `φ̃` (the extrapolated point, or `φ_k` after
+/// a restart): `S(φ̃)` summed for decisions, `g = ∇S(φ̃)`, and the prox of the linearised
+/// data term.
+struct Linearised {
+    point: Tensor<4>,
+    smooth: f64,
+    gradient: Tensor<4>,
+    data: LinearisedData,
+}
+
+impl Linearised {
+    /// `φ_new` for the trial `L`: the prox at `y = φ̃ − g/L`.
+    fn candidate(&self, l: f64) -> Tensor<4> {
+        self.data.prox(
+            self.point.clone() - self.gradient.clone().mul_scalar(1.0 / l),
+            l,
+        )
+    }
+}
+
+impl DeformationProblem<'_> {
+    /// `S(φ) = K·R[φ, a_k]`, differentiable (float32 sum).
+    fn smooth(&self, phi: Tensor<4>) -> Tensor<1> {
+        let p = self.ipalm.energy.params();
+        regularizer(phi, self.a.clone(), p.lambda, p.mu).mul_scalar(self.steps)
+    }
+
+    /// `S(φ)` summed for decisions.
+    fn smooth_decision(&self, phi: Tensor<4>) -> Tensor<1> {
+        let p = self.ipalm.energy.params();
+        let grid = &self.ipalm.grid;
+        grid.decision_sum(weighted_density(phi, self.a.clone(), p.lambda, p.mu))
+            .mul_scalar(self.steps / grid.pixels() as f64)
+    }
+
+    /// The true local energy `e(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` summed for
+    /// decisions (the safeguard's).
+    fn local_energy(&self, phi: Tensor<4>) -> f64 {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let bspline = ipalm.energy.bspline();
+        let residual = bspline.interpolate(self.coeffs_k.clone(), phi.clone()) - self.f_km1.clone();
+        let data_scale = self.steps
+            / (ipalm.energy.params().delta
+                * 2.0
+                * ipalm.layout.channels() as f64
+                * grid.pixels() as f64);
+        let e = self.smooth_decision(phi)
+            + grid
+                .decision_sum(residual.square())
+                .mul_scalar(data_scale);
+        to_host(e)[0]
+    }
+
+    /// Linearises the step around `point` (SPEC §6 step 2).
+    ///
+    /// # Errors
+    ///
+    /// [`Error::NonFinite`] if `S(φ̃)` or its gradient is not finite.
+    fn linearise_at(&self, point: Tensor<4>, k: usize) -> Result<Linearised> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let leaf = point.clone().detach().require_grad();
+        let grads = self.smooth(leaf.clone()).backward();
+        let gradient = leaf
+            .grad(&grads)
+            .expect("the regulariser depends on phi")
+            .autodiff();
+        let v = read_scalars(
+            grid,
+            vec![
+                self.smooth_decision(point.clone()),
+                grid.decision_sum(gradient.clone().square()),
+            ],
+        );
+        if !(v[0].is_finite() && v[1].is_finite()) {
+            return Err(Error::NonFinite {
+                what: format!(
+                    "step k = {k}: K·R at the linearisation point is {}, |grad|^2 = {}",
+                    v[0], v[1]
+                ),
+            });
+        }
+        let lin = linearise(
+            ipalm.energy.bspline(),
+            &ipalm.sobel,
+            self.coeffs_k.clone(),
+            self.f_km1.clone(),
+            point.clone(),
+        );
+        let p = ipalm.energy.params();
+        let kappa =
+            self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
+        let data = LinearisedData::new(grid, lin, point.clone(), kappa);
+        Ok(Linearised {
+            point,
+            smooth: v[0],
+            gradient,
+            data,
+        })
+    }
+
+    /// The backtracking search of SPEC §6 step 2 around `lin`, from the stored `L`: one
+    /// read-back per trial (`min det J`, `S(φ_new)`, `⟨g, d⟩`, `‖d‖²`).
+    fn search(&self, lin: &Linearised, stored: f64) -> Result<Search<Tensor<4>>> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let bt = ipalm.config.backtracking;
+        let slack = ipalm.slack();
+        bt.search(stored, |l| {
+            let candidate = lin.candidate(l);
+            let d = candidate.clone() - lin.point.clone();
+            let v = read_scalars(
+                grid,
+                vec![
+                    jacobian(candidate.clone()).det().min().reshape([1]),
+                    self.smooth_decision(candidate.clone()),
+                    grid.decision_sum(lin.gradient.clone() * d.clone()),
+                    grid.decision_sum(d.square()),
+                ],
+            );
+            // The prox fixes the boundary exactly, so admissibility is det J > 0 (a NaN
+            // fails it too).
+            Ok(if !(v[0] > 0.0) {
+                Trial::Inadmissible
+            } else if bt.accepts(v[1], lin.smooth, v[2], v[3], l, slack) {
+                Trial::Accepted(candidate)
+            } else {
+                Trial::Rejected
+            })
+        })
+    }
+}
+
+/// Several `[1]` tensors read back from the device in one transfer, as float64 where the
+/// backend has it (decision sums already are).
+fn read_scalars(grid: &Grid, parts: Vec<Tensor<1>>) -> Vec<f64> {
+    let dtype = match grid.accumulation() {
+        Accumulation::Float64 => burn::tensor::FloatDType::F64,
+        Accumulation::Float32 => burn::tensor::FloatDType::F32,
+    };
+    to_host(Tensor::cat(
+        parts.into_iter().map(|t| t.detach().cast(dtype)).collect(),
+        0,
+    ))
 }
 
 impl Ipalm {
@@ -270,6 +462,15 @@ impl Ipalm {
         &self.config
     }
 
+    /// The relative slack of the decision tests on this grid: none where the sums are
+    /// accumulated in float64 (SPEC §6, "Floating point").
+    fn slack(&self) -> f64 {
+        match self.grid.accumulation() {
+            Accumulation::Float64 => 0.0,
+            Accumulation::Float32 => self.config.backtracking.float32_slack,
+        }
+    }
+
     /// `a_k = a[u_k]` for the frames `f_1..f_K` of `state`, `[K, H, W]`.
     pub fn anisotropies(&self, state: &LevelState) -> Tensor<3> {
         let k = state.steps();
@@ -294,7 +495,8 @@ impl Ipalm {
     /// # Errors
     ///
     /// [`Error::NonFinite`] if a NaN or infinity shows up in an energy or gradient of the
-    /// state; the state is then left at the last finite iterate.
+    /// state. Every step is applied only once it is known to be finite, so `state` is then a
+    /// finite iterate: the steps `1..k−1` of this sweep done, the rest as before.
     pub fn sweep(&self, state: &mut LevelState, kind: SweepKind) -> Result<SweepReport> {
         let k_steps = state.steps();
         let mut report = SweepReport {
@@ -310,6 +512,8 @@ impl Ipalm {
                 let a = a.reshape([1, h, w]);
                 let (phi_new, step) = self.deformation_step(state, k, a.clone())?;
                 state.l_phi[k - 1] = step.lipschitz;
+                // Also after a restart: φ_k^prev ← φ_k, so the next sweep extrapolates along
+                // the restarted step, not the rejected direction (SPEC §6).
                 state.phi_prev[k - 1] = std::mem::replace(&mut state.phi[k - 1], phi_new);
                 report.anisotropy.push(a);
                 report.deformation.push(step);
@@ -331,121 +535,87 @@ impl Ipalm {
         k: usize,
         a: Tensor<3>,
     ) -> Result<(Tensor<4>, DeformationStep)> {
-        let k_steps = state.steps() as f64;
-        let p = *self.energy.params();
-        let bt = self.config.backtracking;
+        let problem = DeformationProblem {
+            ipalm: self,
+            a,
+            coeffs_k: self.energy.bspline().coefficients(state.f[k].clone()),
+            f_km1: state.f[k - 1].clone(),
+            steps: state.steps() as f64,
+        };
         let phi = state.phi[k - 1].clone();
-        let smooth =
-            |phi: Tensor<4>| regularizer(phi, a.clone(), p.lambda, p.mu).mul_scalar(k_steps);
-
-        let mut phi_tilde = phi.clone();
-        if self.config.beta > 0.0 {
-            let extrapolated = phi.clone()
-                + (phi.clone() - state.phi_prev[k - 1].clone()).mul_scalar(self.config.beta);
-            if is_admissible(&self.grid, extrapolated.clone()) {
-                phi_tilde = extrapolated;
-            }
-        }
-
-        // S(φ̃) and g = ∇S(φ̃) by autodiff.
-        let leaf = phi_tilde.clone().detach().require_grad();
-        let s_tilde = smooth(leaf.clone());
-        let grads = s_tilde.backward();
-        let g = leaf
-            .grad(&grads)
-            .expect("the regulariser depends on phi")
-            .autodiff();
-        let s_tilde = scalar(s_tilde.detach());
-        if !s_tilde.is_finite() {
-            return Err(Error::NonFinite {
-                what: format!("K·R at the extrapolated deformation of step k = {k} is {s_tilde}"),
-            });
-        }
-
-        let bspline = self.energy.bspline();
-        let coeffs_k = bspline.coefficients(state.f[k].clone());
-        let lin = linearise(
-            bspline,
-            &self.sobel,
-            coeffs_k.clone(),
-            state.f[k - 1].clone(),
-            phi_tilde.clone(),
-        );
-        let kappa = k_steps / (p.delta * self.layout.channels() as f64 * self.grid.pixels() as f64);
-        let data = LinearisedData::new(&self.grid, lin, phi_tilde.clone(), kappa);
-        let trial = |l: f64| data.prox(phi_tilde.clone() - g.clone().mul_scalar(1.0 / l), l);
-
-        let mut l = bt.shrink * state.l_phi[k - 1];
+        let stored = state.l_phi[k - 1];
         let mut step = DeformationStep {
-            lipschitz: l,
+            lipschitz: stored,
             trials: 0,
             inadmissible_trials: 0,
+            restarted: false,
             safeguard_doublings: 0,
             dropped: false,
         };
-        let mut accepted = None;
-        while step.trials < bt.max_trials {
-            step.trials += 1;
-            let candidate = trial(l);
-            if !admissible_each(&self.grid, candidate.clone())[0] {
-                step.inadmissible_trials += 1;
-                l *= 2.0;
-                continue;
-            }
-            let d = candidate.clone() - phi_tilde.clone();
-            let v = scalars(vec![
-                smooth(candidate.clone()),
-                (g.clone() * d.clone()).sum(),
-                d.square().sum(),
-            ]);
-            if bt.accepts(v[0], s_tilde, v[1], v[2], l) {
-                accepted = Some(candidate);
-                break;
-            }
-            l *= 2.0;
-        }
-        let Some(mut phi_new) = accepted else {
+        let dropped = |mut step: DeformationStep| -> Result<(Tensor<4>, DeformationStep)> {
+            // SPEC §6, *Giving up*: keep φ_k and the L this step started from.
             step.dropped = true;
-            step.lipschitz = l;
-            return Ok((phi, step));
+            step.lipschitz = stored;
+            Ok((phi.clone(), step))
         };
 
+        let extrapolated = (self.config.beta > 0.0)
+            .then(|| {
+                phi.clone()
+                    + (phi.clone() - state.phi_prev[k - 1].clone()).mul_scalar(self.config.beta)
+            })
+            .filter(|e| is_admissible(&self.grid, e.clone()));
+        let mut lin =
+            problem.linearise_at(extrapolated.clone().unwrap_or_else(|| phi.clone()), k)?;
+        let mut search = problem.search(&lin, stored)?;
+        step.trials += search.trials;
+        step.inadmissible_trials += search.inadmissible;
+        let Some(mut phi_new) = search.accepted.take() else {
+            return dropped(step);
+        };
+        let mut accepted_l = search.lipschitz;
+
         if self.config.safeguard {
-            // The true local energy e(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ].
-            let local = |phi: Tensor<4>| {
-                let d = data_term_from_coefficients(
-                    bspline,
-                    state.f[k - 1].clone(),
-                    coeffs_k.clone(),
-                    phi.clone(),
-                    self.layout.channels(),
-                );
-                scalar(smooth(phi) + d.mul_scalar(k_steps / p.delta))
-            };
-            let current = local(phi.clone());
+            let current = problem.local_energy(phi.clone());
+            let tolerance = self.slack() * current.abs();
             // Written so that a NaN energy counts as a rise.
-            while !(local(phi_new.clone()) <= current) {
+            let rises = |e: f64| !(e <= current + tolerance);
+            let mut energy = problem.local_energy(phi_new.clone());
+            if rises(energy) && extrapolated.is_some() {
+                // Restart the inertia: as L grows the prox tends to φ̃, which for the
+                // extrapolated point may lie above e(φ_k); around φ_k it tends to φ_k.
+                step.restarted = true;
+                lin = problem.linearise_at(phi.clone(), k)?;
+                let mut search = problem.search(&lin, stored)?;
+                step.trials += search.trials;
+                step.inadmissible_trials += search.inadmissible;
+                let Some(restarted) = search.accepted.take() else {
+                    return dropped(step);
+                };
+                phi_new = restarted;
+                accepted_l = search.lipschitz;
+                energy = problem.local_energy(phi_new.clone());
+            }
+            let mut l = accepted_l;
+            while rises(energy) {
                 if step.safeguard_doublings == self.config.safeguard_max {
-                    step.dropped = true;
-                    phi_new = phi.clone();
-                    break;
+                    return dropped(step);
                 }
                 step.safeguard_doublings += 1;
                 l *= 2.0;
-                phi_new = trial(l);
+                phi_new = lin.candidate(l);
+                energy = problem.local_energy(phi_new.clone());
             }
         }
-        step.lipschitz = l;
+        // The doublings answered a linearisation that misled this step, not the curvature
+        // of S: the next sweep starts from the L the backtracking accepted.
+        step.lipschitz = accepted_l;
         Ok((phi_new, step))
     }
 
     /// The feature step of `k < K` (SPEC §6 step 3), block by block: returns `f_new`.
     fn feature_step(&self, state: &LevelState, k: usize) -> Result<(Tensor<4>, FeatureStep)> {
-        let k_steps = state.steps() as f64;
-        let p = *self.energy.params();
-        let bt = self.config.backtracking;
         let bspline = self.energy.bspline();
-        let c_tot = self.layout.channels();
         let f_k = state.f[k].clone();
         let f_tilde = if self.config.beta > 0.0 {
             f_k.clone() + (f_k.clone() - state.f_prev[k].clone()).mul_scalar(self.config.beta)
@@ -465,25 +635,29 @@ impl Ipalm {
         let mut step = FeatureStep {
             lipschitz: Vec::new(),
             trials: Vec::new(),
+            dropped: Vec::new(),
         };
         for (b, block) in self.layout.blocks().iter().enumerate() {
             let (start, len) = (block.channels.start, block.channels.len());
-            let prev = state.f[k - 1].clone().narrow(1, start, len);
-            let next = next_warped.clone().narrow(1, start, len);
-            // Q restricted to the block: (K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}]),
-            // still divided by C_tot.
-            let q = |x: Tensor<4>| {
-                let warped = sampler_k.sample(bspline.coefficients(x.clone()));
-                let moved = data_term_from_warped(warped, prev.clone(), c_tot);
-                let fixed = data_term_from_warped(next.clone(), x, c_tot);
-                (moved + fixed).mul_scalar(k_steps / p.delta)
+            let problem = FeatureProblem {
+                ipalm: self,
+                sampler_k: &sampler_k,
+                prev: state.f[k - 1].clone().narrow(1, start, len),
+                next: next_warped.clone().narrow(1, start, len),
+                steps: state.steps() as f64,
             };
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
             let leaf = x_tilde.clone().require_grad();
-            let q_leaf = q(leaf.clone());
-            let grads = q_leaf.backward();
+            let residuals = problem.residuals(leaf.clone());
+            let grads = problem.differentiable(&residuals).backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let v = scalars(vec![q_leaf.detach(), grad.clone().square().sum()]);
+            let v = read_scalars(
+                &self.grid,
+                vec![
+                    problem.decision(&residuals),
+                    self.grid.decision_sum(grad.clone().square()),
+                ],
+            );
             let (q_tilde, grad_norm2) = (v[0], v[1]);
             if !(q_tilde.is_finite() && grad_norm2.is_finite()) {
                 return Err(Error::NonFinite {
@@ -492,25 +666,72 @@ impl Ipalm {
                     ),
                 });
             }
-            let mut l = bt.shrink * state.l_f[k - 1][b];
-            let mut trials = 0;
-            let mut accepted = None;
-            while trials < bt.max_trials {
-                trials += 1;
+            let bt = self.config.backtracking;
+            let slack = self.slack();
+            let search = bt.search(state.l_f[k - 1][b], |l| {
                 let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
-                let q_new = scalar(q(candidate.clone()));
+                let q_new = problem.decision(&problem.residuals(candidate.clone()));
+                let q_new = read_scalars(&self.grid, vec![q_new])[0];
                 // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
-                if bt.accepts(q_new, q_tilde, -grad_norm2 / l, grad_norm2 / (l * l), l) {
-                    accepted = Some(candidate);
-                    break;
-                }
-                l *= 2.0;
-            }
-            // Exhausted backtracking keeps the block's current values.
-            blocks.push(accepted.unwrap_or_else(|| state.f[k].clone().narrow(1, start, len)));
-            step.lipschitz.push(l);
-            step.trials.push(trials);
+                Ok(
+                    if bt.accepts(q_new, q_tilde, -grad_norm2 / l, grad_norm2 / (l * l), l, slack)
+                    {
+                        Trial::Accepted(candidate)
+                    } else {
+                        Trial::Rejected
+                    },
+                )
+            })?;
+            step.dropped.push(search.accepted.is_none());
+            // A block whose search gave up keeps its current values.
+            blocks.push(
+                search
+                    .accepted
+                    .unwrap_or_else(|| state.f[k].clone().narrow(1, start, len)),
+            );
+            step.lipschitz.push(search.lipschitz);
+            step.trials.push(search.trials);
         }
         Ok((Tensor::cat(blocks, 1), step))
+    }
+}
+
+/// `Q` restricted to one channel block of `f_k` (SPEC §6 step 3):
+/// `(K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}])`, still divided by `C_tot`.
+struct FeatureProblem<'a> {
+    ipalm: &'a Ipalm,
+    sampler_k: &'a Sampler,
+    /// The block of `f_{k−1}`.
+    prev: Tensor<4>,
+    /// The block of `T[f_{k+1}, φ_{k+1}]`.
+    next: Tensor<4>,
+    steps: f64,
+}
+
+impl FeatureProblem<'_> {
+    /// The residuals of the two data terms: `T[x, φ_k] − f_{k−1}` and `T[f_{k+1}, φ_{k+1}] − x`.
+    fn residuals(&self, x: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
+        let bspline = self.ipalm.energy.bspline();
+        let warped = self.sampler_k.sample(bspline.coefficients(x.clone()));
+        (warped - self.prev.clone(), self.next.clone() - x)
+    }
+
+    /// `Q` from its residuals, differentiable (float32 sum).
+    fn differentiable(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Tensor<1> {
+        let c_tot = self.ipalm.layout.channels();
+        let delta = self.ipalm.energy.params().delta;
+        (data_term_from_residual(moved.clone(), c_tot)
+            + data_term_from_residual(fixed.clone(), c_tot))
+        .mul_scalar(self.steps / delta)
+    }
+
+    /// `Q` from its residuals, summed for decisions.
+    fn decision(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Tensor<1> {
+        let grid = &self.ipalm.grid;
+        let c_tot = self.ipalm.layout.channels() as f64;
+        let delta = self.ipalm.energy.params().delta;
+        let scale = self.steps / (delta * 2.0 * c_tot * grid.pixels() as f64);
+        (grid.decision_sum(moved.clone().square()) + grid.decision_sum(fixed.clone().square()))
+            .mul_scalar(scale)
     }
 }
