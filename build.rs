@@ -6,6 +6,9 @@
 //! `OUT_DIR/model/vgg19.rs`, which `src/vgg/model.rs` includes untouched.
 #![allow(deprecated)] // burn-import 0.22 is the deprecated wrapper of burn-onnx; it is the design card's tool.
 
+#[path = "src/features/vgg/architecture.rs"]
+#[allow(dead_code)]
+mod architecture;
 #[path = "onnx/vgg19_graph.rs"]
 mod vgg19_graph;
 
@@ -15,6 +18,7 @@ use burn_import::onnx::ModelGen;
 
 fn main() {
     println!("cargo:rerun-if-changed=onnx/vgg19_graph.rs");
+    println!("cargo:rerun-if-changed=src/features/vgg/architecture.rs");
     println!("cargo:rerun-if-changed=build.rs");
     let out = PathBuf::from(std::env::var_os("OUT_DIR").expect("cargo sets OUT_DIR"));
     let onnx = out.join("vgg19.onnx");

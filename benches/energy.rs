@@ -1,7 +1,9 @@
 //! Baseline costs of the discrete model on each compiled backend, float32:
 //!
 //! - `warp/BACKEND/C{c}/{n}`: `T[f, φ]` (prefilter + cubic interpolation) of one
-//!   `[1, C, n, n]` frame;
+//!   `[1, C, n, n]` frame, the way the backend computes it; on a backend with the fused
+//!   spline op also `warp/BACKEND-composed/...`, the composed tensor ops it replaced (dense
+//!   prefilter matmuls and row gathers), for the comparison;
 //! - `step/BACKEND/C{c}/{n}`: value and autodiff gradient of one step of `E`,
 //!   `R[φ_k, a_k] + D[f_{k−1}, f_k, φ_k]`, w.r.t. `φ_k`, `f_{k−1}` and `f_k`.
 //!
@@ -21,11 +23,12 @@ use std::time::Duration;
 
 use burn::tensor::{Device, Tensor};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use deepmorph::energy::path::PathEnergy;
-use deepmorph::warp::BSpline;
+use deepmorph::model::energy::path::PathEnergy;
+use deepmorph::model::warp::BSpline;
+use deepmorph::backend::Gather;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
-/// The CLI's allocator (see `src/main.rs`), so the figures are the program's.
+/// The CLI's allocator (see `src/bin/deepmorph/main.rs`), so the figures are the program's.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -82,17 +85,23 @@ fn benches(c: &mut Criterion) {
                 let id = format!("{backend}/C{channels}");
 
                 let grid = Grid::new(n, n, &plain, Precision::F32.dtype()).unwrap();
-                let bspline = BSpline::new(&grid);
                 let (f, phi) = (image(&grid, channels, 0.0), deformation(&grid));
+                let mut variants = vec![(id.clone(), BSpline::new(&grid))];
+                if backend.has_fused_warp() {
+                    let composed = BSpline::with_gather(&grid, Gather::RowsFrom(32));
+                    variants.push((format!("{backend}-composed/C{channels}"), composed));
+                }
                 let mut group = c.benchmark_group("warp");
                 group.sample_size(10).warm_up_time(Duration::from_secs(1));
-                group.bench_with_input(BenchmarkId::new(&id, n), &n, |b, _| {
-                    b.iter(|| {
-                        let out = bspline.warp(f.clone(), phi.clone());
-                        sync(&plain);
-                        out
-                    })
-                });
+                for (label, bspline) in &variants {
+                    group.bench_with_input(BenchmarkId::new(label, n), &n, |b, _| {
+                        b.iter(|| {
+                            let out = bspline.warp(f.clone(), phi.clone());
+                            sync(&plain);
+                            out
+                        })
+                    });
+                }
                 group.finish();
 
                 let grid = grid.with_device(&autodiff);

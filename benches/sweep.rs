@@ -21,14 +21,14 @@ use std::time::Duration;
 
 use burn::tensor::Tensor;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use deepmorph::deep::DeepConfig;
-use deepmorph::demo::demo_pair;
-use deepmorph::layout::FeatureLayout;
-use deepmorph::multilevel::{Multilevel, MultilevelConfig};
-use deepmorph::optim::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind};
+use deepmorph::model::feature_model::DeepConfig;
+use deepmorph::app::demo::demo_pair;
+use deepmorph::model::layout::FeatureLayout;
+use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
+use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind};
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
-/// The CLI's allocator (see `src/main.rs`), so the figures are the program's.
+/// The CLI's allocator (see `src/bin/deepmorph/main.rs`), so the figures are the program's.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 

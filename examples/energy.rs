@@ -12,8 +12,8 @@
 use std::time::Instant;
 
 use burn::tensor::Tensor;
-use deepmorph::energy::path::PathEnergy;
-use deepmorph::io::to_host;
+use deepmorph::model::energy::path::PathEnergy;
+use deepmorph::model::grid::to_host;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 /// A soft disc of radius `0.3·size` centred at `(cy, cx)` (in pixels), red on a blue-grey

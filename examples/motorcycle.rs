@@ -1,29 +1,30 @@
-//! The RGB model on the Middlebury 2014 motorcycle stereo pair, scored against its
-//! ground-truth disparity: the endpoint error of the composed map `Φ = φ_K ∘ … ∘ φ_1`.
+//! The Middlebury 2014 motorcycle stereo pair morphed with the library's one-call API, and
+//! scored against its ground-truth disparity: the endpoint error of the composed map
+//! `Φ = φ_K ∘ … ∘ φ_1`.
 //!
 //! ```sh
 //! cargo run --release --example motorcycle -- --max-side 128 -K 8 --levels 4 --sweeps 60
+//! cargo run --release --example motorcycle -- --max-side 128 --model deep \
+//!     --vgg19 ../shared/data/vgg19/vgg19_hed_stand_in.onnx
 //! ```
 //!
 //! Reads `../shared/data/images/pairs/motorcycle/{a.png, b.png, disparity_a.png}` (the
-//! team's test data; the example says so and exits when they are absent). The same
-//! numbers come from the command line:
+//! team's test data; the example says so and exits when they are absent) and writes the
+//! morph to `--output`. The same numbers come from the command line:
 //! `deepmorph morph a.png b.png -o out …` then `deepmorph eval out --truth disparity_a.png`.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
-use std::time::Instant;
 
 use anyhow::Result;
 use clap::Parser;
-use deepmorph::io::RgbImage;
-use deepmorph::metrics::{Metrics, compose};
-use deepmorph::multilevel::{Multilevel, MultilevelConfig, fit_size};
-use deepmorph::observe::EnergyLog;
-use deepmorph::truth::Correspondence;
-use deepmorph::{Backend, Grid, Precision};
+use deepmorph::Precision;
+use deepmorph::app::config::{Inputs, MorphConfig, WorkingSize};
+use deepmorph::app::job::{MorphJob, prepare_output_dir};
+use deepmorph::eval::folder::MorphFolder;
+use deepmorph::io::truth::Correspondence;
 
-/// The CLI's allocator (see `src/main.rs`), so the figures are the program's.
+/// The CLI's allocator (see `src/bin/deepmorph/main.rs`), so the figures are the program's.
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
@@ -44,72 +45,55 @@ struct Args {
     /// Data-term weight 1/δ (SPEC §9: 1).
     #[arg(long, default_value_t = 1.0)]
     delta: f64,
+    /// VGG19 weights: morph with the deep model.
+    #[arg(long)]
+    vgg19: Option<PathBuf>,
+    /// Where the morph is written.
+    #[arg(short, long, default_value = "target/motorcycle")]
+    output: PathBuf,
 }
 
 fn main() -> Result<()> {
     let args = Args::parse();
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/images/pairs/motorcycle");
     if !dir.join("disparity_a.png").is_file() {
-        println!(
-            "skipped: {} is absent (the team's test data)",
-            dir.display()
-        );
+        println!("skipped: {} is absent (the team's test data)", dir.display());
         return Ok(());
     }
-    let (a, b) = (
-        RgbImage::load(&dir.join("a.png"))?,
-        RgbImage::load(&dir.join("b.png"))?,
-    );
-    let truth = Correspondence::load(&dir.join("disparity_a.png"))?;
-
-    let (h, w) = fit_size(a.height(), a.width(), args.max_side, args.levels);
-
-    let backend = Backend::default_compiled().expect("a backend is compiled in");
-    let device = backend.device_for(Precision::F32)?.autodiff();
-    let grid = Grid::new(h, w, &device, Precision::F32.dtype())?;
-    let (u_a, u_b) = (
-        a.resized(h, w).to_tensor(&grid)?,
-        b.resized(h, w).to_tensor(&grid)?,
-    );
-    let config = MultilevelConfig {
-        steps: args.steps,
-        levels: args.levels,
-        sweeps: args.sweeps,
-        params: deepmorph::EnergyParams {
-            delta: args.delta,
-            ..deepmorph::EnergyParams::rgb()
-        },
-        ..MultilevelConfig::default()
+    let mut config = match &args.vgg19 {
+        Some(weights) => MorphConfig::deep(weights),
+        None => MorphConfig::default(),
     };
+    config.size = WorkingSize::Fit {
+        max_side: args.max_side,
+    };
+    config.solver.steps = args.steps;
+    config.solver.levels = args.levels;
+    config.solver.sweeps = args.sweeps;
+    config.solver.params.delta = args.delta;
+    let inputs = Inputs::Files {
+        a: dir.join("a.png"),
+        b: dir.join("b.png"),
+    };
+    let job = MorphJob::prepare(config, inputs)?;
+    let (h, w) = job.working_size();
     println!(
-        "motorcycle {}x{} -> {w}x{h}, K = {}, {} levels x {} sweeps, delta = {}, {backend}",
-        a.width(),
-        a.height(),
+        "motorcycle -> {w}x{h}, K = {}, {} levels x {} sweeps, delta = {}, {:?} model, {}",
         args.steps,
         args.levels,
         args.sweeps,
-        args.delta
+        args.delta,
+        job.config().model(),
+        job.config().backend
     );
-    let started = Instant::now();
-    let mut log = EnergyLog::default();
-    let morph =
-        Multilevel::new(config)?.run(&device, u_a, u_b, &mut log, &AtomicBool::new(false))?;
-    let seconds = started.elapsed().as_secs_f64();
+    let result = job.run(&mut (), &AtomicBool::new(false))?;
+    let out = prepare_output_dir(&args.output, &[], &job.output_names())?;
+    result.write(&job, &out)?;
 
-    let frames = morph.state.frames();
-    let k = args.steps;
-    let endpoints = (frames.clone().narrow(0, 0, 1), frames.narrow(0, k, 1));
-    let deformations = morph.state.deformations();
-    let composed = compose(&morph.grid, deformations.clone());
-    let metrics = Metrics::compute(
-        &morph.grid,
-        deformations,
-        composed,
-        endpoints,
-        &log.records,
-        Some((&truth, "disparity_a.png")),
-    )?;
+    let truth = Correspondence::load(&dir.join("disparity_a.png"))?;
+    let folder = MorphFolder::read(&out, &job.config().backend.device_for(Precision::F32)?)?;
+    let metrics = folder.metrics(folder.composed(), Some((&truth, "disparity_a.png")))?;
     print!("{metrics}");
-    println!("solver time {seconds:.1} s");
+    println!("solver time {:.1} s; morph in {}", result.seconds, out.display());
     Ok(())
 }

@@ -2,7 +2,8 @@
 //!
 //! Shared, through `#[path]`, by `build.rs` (which writes the graph with zero weights and
 //! hands it to burn-import) and by the tests (which write the same graph with known weights
-//! to check the run-time weight loader). It is a few dozen lines of protobuf wire format
+//! to check the run-time weight loader). Both include it next to a module `architecture`,
+//! the table in `src/features/vgg/architecture.rs`. It is a few dozen lines of protobuf wire format
 //! instead of a Python toolchain: ONNX is a protobuf message, and this graph needs only
 //! nodes, initializers, one input and five outputs.
 //!
@@ -15,53 +16,7 @@
 
 use std::io::Write;
 
-/// Output channels of the 16 convolutions, in order; `None` marks a max-pool.
-pub const LAYERS: [Option<usize>; 20] = [
-    Some(64),
-    Some(64),
-    None,
-    Some(128),
-    Some(128),
-    None,
-    Some(256),
-    Some(256),
-    Some(256),
-    Some(256),
-    None,
-    Some(512),
-    Some(512),
-    Some(512),
-    Some(512),
-    None,
-    Some(512),
-    Some(512),
-    Some(512),
-    Some(512),
-];
-
-/// The five taps: `(name, index of the convolution (0-based) whose ReLU is tapped)`.
-pub const TAPS: [(&str, usize); 5] = [
-    ("relu1_2", 1),
-    ("relu2_2", 3),
-    ("relu3_4", 7),
-    ("relu4_4", 11),
-    ("relu5_4", 15),
-];
-
-/// torchvision's `vgg19.features` index of each of the 16 convolutions.
-pub const TORCHVISION_INDEX: [usize; 16] =
-    [0, 2, 5, 7, 10, 12, 14, 16, 19, 21, 23, 25, 28, 30, 32, 34];
-
-/// `[out, in, 3, 3]` of each of the 16 convolutions.
-pub fn conv_shapes() -> Vec<[usize; 4]> {
-    let mut shapes = Vec::with_capacity(16);
-    let mut channels = 3;
-    for out in LAYERS.iter().flatten() {
-        shapes.push([*out, channels, 3, 3]);
-        channels = *out;
-    }
-    shapes
-}
+use super::architecture::{LAYERS, TAPS, TORCHVISION_INDEX, conv_shapes};
 
 /// A protobuf message under construction (wire format: varint keys, varints and
 /// length-delimited fields; ONNX uses nothing else here).

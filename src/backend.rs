@@ -11,16 +11,86 @@ use std::fmt;
 use burn::tensor::{DType, Device};
 
 use crate::error::{Error, Result};
-use crate::warp::Gather;
+
+/// How the cubic B-spline warp is computed: fused, or as composed tensor ops that read the
+/// 4 × 4 spline coefficients around each sample point by gathers. All give the same result on
+/// every backend (to rounding); they differ in speed:
+///
+/// - [`Gather::Elements`]: 16 `gather`s of `[N, C, P]` scalars, one thread per output
+///   element, and a scatter-add backward. Right for GPUs.
+/// - [`Gather::Rows`]: the coefficients laid out channels-last (`[N·H·W, C]`) and one
+///   `select` of `16·N·P` whole rows of `C` contiguous values; its backward adds rows
+///   (`select_assign`). On a CPU a row is one memory copy, where `gather` pays for an index
+///   computation per scalar: 3.2× faster on flex for the deep model's 67 channels (README,
+///   "Benchmarks"). Not for wgpu: its `select_assign` runs one thread per channel over all
+///   indices, and on lavapipe it lost updates beyond 65,535 indices (BURN-NOTES).
+/// - [`Gather::RowsFrom`]`(c)`: rows for `c` channels or more, elements below. On ndarray the
+///   row select's fixed cost (the permute to channels-last and the row-wise backward) only
+///   pays off for wide tensors: for a warp and its gradient at 128², rows lose 6× for 3
+///   channels and win 1.7× for 67.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Gather {
+    /// No gathers: the fused spline op, native kernels for the prefilter (a tridiagonal
+    /// solve per line) and the evaluation, with a hand-written backward
+    /// ([`crate::model::warp::op`]). flex and wgpu.
+    Fused,
+    /// Scalar gathers, channels-first.
+    Elements,
+    /// Row selects, channels-last.
+    Rows,
+    /// Row selects for at least this many channels, scalar gathers below.
+    RowsFrom(usize),
+}
+
+impl Gather {
+    /// Whether `channels` channels are read as rows.
+    pub fn reads_rows(self, channels: usize) -> bool {
+        match self {
+            Gather::Elements | Gather::Fused => false,
+            Gather::Rows => true,
+            Gather::RowsFrom(min) => channels >= min,
+        }
+    }
+}
+
+/// What the numerical code needs to know about the device it runs on; a
+/// [`crate::model::grid::Grid`] carries it, so nothing below this module names a backend.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Capabilities {
+    /// Whether the backend computes in float64 (decision sums are accumulated in it).
+    pub float64: bool,
+    /// How the warp reads spline coefficients fastest.
+    pub gather: Gather,
+}
+
+impl Capabilities {
+    /// The capabilities of the backend `device` belongs to (those of wgpu for a device of no
+    /// known CPU backend).
+    pub fn of(device: &Device) -> Self {
+        match Backend::of(device) {
+            Some(backend) => Self {
+                float64: backend.supports(Precision::F64),
+                gather: backend.warp_gather(),
+            },
+            None => Self {
+                float64: false,
+                gather: Gather::Elements,
+            },
+        }
+    }
+}
 
 /// A Burn backend this program can run on. Every variant exists in every build, so a
 /// request for a backend that was not compiled in is an error with a remedy, not a
 /// compile-time hole.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Backend {
     /// Burn's pure-Rust CPU backend (SIMD, rayon, gemm); feature `flex`.
     Flex,
     /// The ndarray CPU backend; feature `ndarray` (deprecated by Burn 0.22).
+    #[cfg_attr(feature = "cli", value(name = "ndarray"))]
     NdArray,
     /// wgpu on Vulkan, Metal or DX12 (or lavapipe without a GPU); feature `wgpu`.
     Wgpu,
@@ -93,22 +163,22 @@ impl Backend {
             .or_else(|| cfg!(feature = "wgpu").then_some(Backend::Wgpu))
     }
 
-    /// How the warp reads spline coefficients on this backend ([`Gather`]): whole rows on
-    /// flex, where a row is one memory copy; rows for wide tensors only on ndarray, whose
-    /// channels-last permute and row backward cost more than scalar gathers save below ~32
-    /// channels; scalar gathers on wgpu, whose row scatter runs one thread per channel.
+    /// How the warp is computed on this backend ([`Gather`]): the fused op on flex; rows for
+    /// wide tensors only on ndarray, whose channels-last permute and row backward cost more
+    /// than scalar gathers save below ~32 channels; scalar gathers on wgpu, whose row
+    /// scatter runs one thread per channel.
     pub fn warp_gather(self) -> Gather {
         match self {
-            Backend::Flex => Gather::Rows,
+            Backend::Flex => Gather::Fused,
             Backend::NdArray => Gather::RowsFrom(32),
             Backend::Wgpu => Gather::Elements,
         }
     }
 
-    /// [`warp_gather`](Self::warp_gather) of the backend `device` belongs to (scalar gathers
-    /// for a device of no known backend).
-    pub fn warp_gather_of(device: &Device) -> Gather {
-        Self::of(device).map_or(Gather::Elements, Backend::warp_gather)
+    /// Whether the fused spline op ([`Gather::Fused`]) has kernels on this backend: native
+    /// loops on flex, CubeCL on wgpu; ndarray has none (it keeps the composed ops).
+    pub fn has_fused_warp(self) -> bool {
+        matches!(self, Backend::Flex | Backend::Wgpu)
     }
 
     /// The device of a CPU backend, built without probing anything; `None` for wgpu.
@@ -241,7 +311,7 @@ mod tests {
             let device = backend.device().unwrap();
             assert_eq!(Backend::of(&device), Some(backend));
             assert_eq!(Backend::of(&device.clone().autodiff()), Some(backend));
-            assert_eq!(Backend::warp_gather_of(&device), backend.warp_gather());
+            assert_eq!(Capabilities::of(&device).gather, backend.warp_gather());
         }
     }
 }

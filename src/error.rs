@@ -47,7 +47,7 @@ pub enum Error {
         /// The rejected value, as written.
         value: String,
         /// The valid range, in words.
-        expected: &'static str,
+        expected: String,
     },
 
     /// A file could not be read or written.
@@ -68,6 +68,36 @@ pub enum Error {
         path: std::path::PathBuf,
         /// What the decoder said.
         cause: image::ImageError,
+    },
+
+    /// An output directory whose outputs would overwrite an input file.
+    #[error(
+        "the output directory {} would overwrite the input {}: choose another -o",
+        output.display(),
+        input.display()
+    )]
+    Overwrite {
+        /// The output directory.
+        output: std::path::PathBuf,
+        /// The input it would overwrite.
+        input: std::path::PathBuf,
+    },
+
+    /// A morph would need more memory than it may use.
+    #[error(
+        "this morph needs about {needed_gib:.1} GiB ({what}) but the {limit_name} is \
+         {limit_gib:.1} GiB: use a smaller --size or --max-side, fewer steps -K, or raise \
+         --max-memory"
+    )]
+    Memory {
+        /// The estimated peak, GiB.
+        needed_gib: f64,
+        /// The limit, GiB.
+        limit_gib: f64,
+        /// Where the limit comes from (`--max-memory`, the available memory).
+        limit_name: &'static str,
+        /// The morph's size, in words.
+        what: String,
     },
 
     /// A NaN or infinity appeared where the solver needs finite numbers.
@@ -99,11 +129,11 @@ pub enum Error {
 
 impl Error {
     /// [`Error::InvalidParameter`] for `name = value`, valid when `expected`.
-    pub fn invalid(name: &'static str, value: impl ToString, expected: &'static str) -> Self {
+    pub fn invalid(name: &'static str, value: impl ToString, expected: impl Into<String>) -> Self {
         Self::InvalidParameter {
             name,
             value: value.to_string(),
-            expected,
+            expected: expected.into(),
         }
     }
 }

@@ -2,7 +2,7 @@
 //!
 //! Image morphing as a time-discrete geodesic path in the metamorphosis model, after
 //! Effland, Kobler, Pock, Rajković and Rumpf, "Image Morphing in Deep Feature Spaces"
-//! (Section 5). The exact discrete model is fixed by `SPEC.md`; module docs cite its
+//! (Section 5). The exact discrete model is fixed by `docs/SPEC.md`; module docs cite its
 //! sections.
 //!
 //! Everything numerical is written once on Burn's backend-erased tensors: the same code runs
@@ -14,46 +14,47 @@
 //! backward of `div_scalar` multiplies by `1 / x` rounded to float32, even for float64
 //! tensors, which the float64 gradient checks see at 1e-8 relative.
 //!
-//! - [`stencil`], [`separable`]: the mirror-boundary linear operators (SPEC §0).
-//! - [`warp`]: the cubic B-spline warp `T[f, φ]` (SPEC §1).
-//! - [`deformation`]: Jacobian and admissibility (SPEC §2).
-//! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5).
-//! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6).
-//! - [`resample`]: bilinear resizing and prolongation (SPEC §7).
-//! - [`vgg`], [`deep`]: VGG19 imported from ONNX by burn-import, its run-time weights, and
-//!   the deep model's feature vectors `(η·u, τ·F/rms)` per level (SPEC §4).
-//! - [`metrics`], [`truth`], [`eval`], [`synthetic`]: quality numbers of a finished morph
-//!   (composed map, `det J`, energy split, warp consistency, endpoint error against ground
-//!   truth) and synthetic pairs with a known deformation.
+//! The layers, each importing only from those above it in this list:
+//!
+//! - [`error`]: the library's error type.
+//! - [`backend`]: the only module that knows which backends were compiled in; turns a
+//!   choice into a device and tells the numerics what the device can do.
+//! - [`model`]: the discrete model as differentiable tensor ops (SPEC §0–§5, §7).
+//! - [`solver`]: iPALM on a level and the multilevel driver (SPEC §6, §7).
+//! - [`features`]: VGG19 from ONNX and the deep model's feature maps (SPEC §4).
+//! - [`io`]: images, the output folder, ground-truth files.
+//! - [`eval`]: quality numbers of a finished morph, synthetic pairs with known truth.
+//! - [`app`]: a whole morph from a config to a result folder.
+//!
+//! A morph as a library call:
+//!
+//! ```no_run
+//! use std::sync::atomic::AtomicBool;
+//! use deepmorph::app::config::{Inputs, MorphConfig};
+//! use deepmorph::app::job::{MorphJob, prepare_output_dir};
+//!
+//! # fn main() -> deepmorph::Result<()> {
+//! let inputs = Inputs::Files { a: "a.png".into(), b: "b.png".into() };
+//! let job = MorphJob::prepare(MorphConfig::default(), inputs)?;
+//! let result = job.run(&mut (), &AtomicBool::new(false))?;
+//! let out = prepare_output_dir("out".as_ref(), &[], &job.output_names())?;
+//! let metrics = result.write(&job, &out)?;
+//! # Ok(()) }
+//! ```
 #![warn(missing_docs)]
 
+pub mod app;
 pub mod backend;
-pub mod deep;
-pub mod deformation;
-pub mod demo;
-pub mod energy;
+#[cfg(feature = "check")]
+pub mod check;
 pub mod error;
 pub mod eval;
-pub mod grid;
+pub mod features;
 pub mod io;
-pub mod layout;
-pub mod memory;
-pub mod metrics;
-pub mod multilevel;
-pub mod observe;
-pub mod optim;
-pub mod output;
-pub mod params;
-pub mod resample;
-pub mod separable;
-pub mod sobel;
-pub mod stencil;
-pub mod synthetic;
-pub mod truth;
-pub mod vgg;
-pub mod warp;
+pub mod model;
+pub mod solver;
 
 pub use backend::{Backend, Precision};
 pub use error::{Error, Result};
-pub use grid::Grid;
-pub use params::EnergyParams;
+pub use model::grid::Grid;
+pub use model::params::EnergyParams;

@@ -1,0 +1,319 @@
+//! A morph from a [`MorphConfig`] to a result folder, in three calls:
+//! [`MorphJob::prepare`] checks the settings, reads the inputs, picks the working size and
+//! refuses what would not fit in memory; [`MorphJob::run`] morphs; [`MorphResult::write`]
+//! writes every output and returns the quality numbers.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::time::Instant;
+
+use crate::app::config::{Inputs, MorphConfig, Outcome, RunRecord};
+use crate::app::demo::demo_pair;
+use crate::app::memory;
+use crate::backend::Precision;
+use crate::error::{Error, Result};
+use crate::eval::folder::MorphFolder;
+use crate::eval::metrics::Metrics;
+use crate::features::deep::deep_features;
+use crate::features::vgg::Vgg19;
+use crate::features::vgg::architecture::tap_channels;
+use crate::io::energy_log::EnergyLog;
+use crate::io::images::{RgbImage, write_atomically, write_png};
+use crate::io::outputs::{
+    CONFIG, METRICS, contact_sheet, output_names, save_composed, save_deformations,
+    write_frames, write_gif,
+};
+use crate::model::feature_model::FeatureModel;
+use crate::model::grid::Grid;
+use crate::solver::multilevel::{Morph, Multilevel};
+use crate::solver::observer::{Observer, Termination};
+
+/// A morph ready to run: checked settings, the inputs at the working size.
+#[derive(Clone, Debug)]
+pub struct MorphJob {
+    config: MorphConfig,
+    inputs: Inputs,
+    images: (RgbImage, RgbImage),
+    notes: Vec<String>,
+    estimate: u64,
+    inject_nonfinite: Option<(usize, usize)>,
+}
+
+/// What a morph computed.
+#[derive(Debug)]
+pub struct MorphResult {
+    /// The solver's result: the last level's grid and state, `a_1..a_K`, the termination.
+    pub morph: Morph,
+    /// `u_0..u_K` on the host (SPEC §8: RGB part, divided by `η` in the deep model).
+    pub frames: Vec<RgbImage>,
+    /// `E` and its parts after every joint sweep.
+    pub energy: EnergyLog,
+    /// Wall-clock seconds of the solver (not of reading the inputs).
+    pub seconds: f64,
+    /// The deep model: RMS of each VGG tap of the inputs before scaling.
+    pub tap_rms: Option<Vec<f64>>,
+}
+
+impl MorphJob {
+    /// Checks `config`, reads the inputs, resolves the working size and refuses a morph whose
+    /// estimated peak memory would not fit, before anything large is allocated.
+    ///
+    /// # Errors
+    ///
+    /// A bad setting, an unreadable input, a working size that does not fit the pyramid, or
+    /// not enough memory.
+    pub fn prepare(config: MorphConfig, inputs: Inputs) -> Result<Self> {
+        config.validate()?;
+        config.backend.device_for(Precision::F32)?;
+        let multiple = config.size_multiple();
+        let deep = config.deep.is_some();
+        let channels = if deep { 3 + tap_channels()[0] } else { 3 };
+        let check_memory = |h: usize, w: usize| {
+            memory::check(
+                h,
+                w,
+                config.solver.steps,
+                channels,
+                deep,
+                config.max_memory_gib,
+                config.backend != crate::Backend::Wgpu,
+            )
+        };
+        let mut notes = Vec::new();
+        let (inputs, images, estimate) = match inputs {
+            Inputs::Files { a, b } => {
+                let (image_a, image_b) = (RgbImage::load(&a)?, RgbImage::load(&b)?);
+                let (h, w) = config
+                    .size
+                    .resolve(image_a.height(), image_a.width(), multiple)?;
+                let estimate = check_memory(h, w)?;
+                let mut resize = |img: RgbImage, name: &str| {
+                    if (img.height(), img.width()) == (h, w) {
+                        return img;
+                    }
+                    notes.push(format!(
+                        "{name}: {}x{} resized to the working size {w}x{h}",
+                        img.width(),
+                        img.height()
+                    ));
+                    img.resized(h, w)
+                };
+                let images = (resize(image_a, "A"), resize(image_b, "B"));
+                let absolute = |p: PathBuf| p.canonicalize().unwrap_or(p);
+                let inputs = Inputs::Files {
+                    a: absolute(a),
+                    b: absolute(b),
+                };
+                (inputs, images, estimate)
+            }
+            Inputs::Demo => {
+                let side = match config.size {
+                    crate::app::config::WorkingSize::Fit { max_side } => max_side,
+                    crate::app::config::WorkingSize::Exact { height, width } => {
+                        height.max(width)
+                    }
+                };
+                let (h, w) = config.size.resolve(side, side, multiple)?;
+                let estimate = check_memory(h, w)?;
+                let (a, b) = demo_pair(h.max(w));
+                ((Inputs::Demo), (a.resized(h, w), b.resized(h, w)), estimate)
+            }
+        };
+        Ok(Self {
+            config,
+            inputs,
+            images,
+            notes,
+            estimate,
+            inject_nonfinite: None,
+        })
+    }
+
+    /// For tests of the non-finite path: see [`Multilevel::inject_nonfinite`].
+    #[doc(hidden)]
+    pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
+        self.inject_nonfinite = Some((level, sweep));
+        self
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &MorphConfig {
+        &self.config
+    }
+
+    /// The inputs (files as absolute paths).
+    pub fn inputs(&self) -> &Inputs {
+        &self.inputs
+    }
+
+    /// The working size `(H, W)`.
+    pub fn working_size(&self) -> (usize, usize) {
+        (self.images.0.height(), self.images.0.width())
+    }
+
+    /// What preparing did that a user should hear of (inputs resized).
+    pub fn notes(&self) -> &[String] {
+        &self.notes
+    }
+
+    /// The estimated peak memory in bytes.
+    pub fn estimated_peak_bytes(&self) -> u64 {
+        self.estimate
+    }
+
+    /// Every file name [`MorphResult::write`] writes.
+    pub fn output_names(&self) -> Vec<String> {
+        output_names(self.config.solver.steps)
+    }
+
+    /// Runs the morph, reporting every sweep to `observer`; stops after the current sweep
+    /// when `interrupt` is raised. A NaN in the optimisation is not an error: the result
+    /// then holds the last finite iterate and says so in its termination.
+    ///
+    /// # Errors
+    ///
+    /// The backend cannot run, the VGG19 weights cannot be read, or the inputs do not suit
+    /// the model.
+    pub fn run(&self, observer: &mut dyn Observer, interrupt: &AtomicBool) -> Result<MorphResult> {
+        let precision = Precision::F32;
+        let device = self.config.backend.device_for(precision)?.autodiff();
+        let (h, w) = self.working_size();
+        let grid = Grid::new(h, w, &device, precision.dtype())?;
+        let (u_a, u_b) = (self.images.0.to_tensor(&grid)?, self.images.1.to_tensor(&grid)?);
+        let model = match &self.config.deep {
+            Some(deep) => {
+                let vgg = Vgg19::load(&deep.vgg19, &device)?;
+                FeatureModel::Deep(deep_features(&vgg, u_a.clone(), u_b.clone(), deep.features)?)
+            }
+            None => FeatureModel::Rgb,
+        };
+        let mut driver = Multilevel::new(self.config.solver)?;
+        if let Some((level, sweep)) = self.inject_nonfinite {
+            driver = driver.inject_nonfinite(level, sweep);
+        }
+        let started = Instant::now();
+        let mut energy = EnergyLog::default();
+        let morph = driver.run_with(
+            &device,
+            u_a,
+            u_b,
+            &model,
+            &mut (&mut energy, observer),
+            interrupt,
+        )?;
+        let seconds = started.elapsed().as_secs_f64();
+        let frames = morph
+            .images()
+            .into_iter()
+            .map(RgbImage::from_tensor)
+            .collect::<Result<Vec<_>>>()?;
+        Ok(MorphResult {
+            morph,
+            frames,
+            energy,
+            seconds,
+            tap_rms: match model {
+                FeatureModel::Deep(deep) => Some(deep.rms().to_vec()),
+                FeatureModel::Rgb => None,
+            },
+        })
+    }
+}
+
+impl MorphResult {
+    /// The run's record, `config.json`.
+    pub fn record(&self, job: &MorphJob) -> RunRecord {
+        let (h, w) = job.working_size();
+        RunRecord {
+            program: "deepmorph".into(),
+            version: env!("CARGO_PKG_VERSION").into(),
+            inputs: job.inputs.clone(),
+            working_size: [h, w],
+            config: job.config.clone(),
+            outcome: Outcome {
+                termination: self.morph.termination.to_string(),
+                grid: [self.morph.grid.height(), self.morph.grid.width()],
+                seconds: self.seconds,
+                levels: self.morph.levels.clone(),
+                tap_rms: self.tap_rms.clone(),
+            },
+        }
+    }
+
+    /// Writes every output of SPEC §8 into `dir` (see [`prepare_output_dir`]): the frames, the
+    /// GIF, the contact sheet, the deformations, the energy log, `config.json`, the composed
+    /// map and `metrics.json`, which is computed from the files just written by the code of
+    /// `deepmorph eval` (so both give the same numbers). Returns those metrics.
+    ///
+    /// # Errors
+    ///
+    /// A file cannot be written.
+    pub fn write(&self, job: &MorphJob, dir: &Path) -> Result<Metrics> {
+        let k = job.config.solver.steps;
+        write_frames(dir, &self.frames)?;
+        write_gif(&dir.join("morph.gif"), &self.frames, job.config.pingpong, 3.0)?;
+        let deformations = self.morph.state.deformations();
+        let displacement = deformations.clone() - self.morph.grid.identity(k);
+        let sheet = contact_sheet(&self.frames, self.morph.anisotropy.clone(), displacement)?;
+        write_png(&dir.join("sheet.png"), &sheet)?;
+        save_deformations(dir, deformations)?;
+        let csv = self.energy.to_csv();
+        write_atomically(&dir.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
+        let json = serde_json::to_vec_pretty(&self.record(job)).expect("records serialise");
+        write_atomically(&dir.join(CONFIG), |w| w.write_all(&json))?;
+        let folder = MorphFolder::read(dir, &job.config.backend.device_for(Precision::F32)?)?;
+        let composed = folder.composed();
+        save_composed(dir, composed.clone())?;
+        let metrics = folder.metrics(composed, None)?;
+        write_metrics(dir, &metrics)?;
+        Ok(metrics)
+    }
+
+    /// Whether the morph ran to its end.
+    pub fn completed(&self) -> bool {
+        self.morph.termination == Termination::Completed
+    }
+}
+
+/// Writes `metrics.json` into `dir`.
+///
+/// # Errors
+///
+/// The file cannot be written.
+pub fn write_metrics(dir: &Path, metrics: &Metrics) -> Result<()> {
+    let json = serde_json::to_vec_pretty(metrics).expect("metrics serialise");
+    write_atomically(&dir.join(METRICS), |w| w.write_all(&json))
+}
+
+/// Creates the output directory and refuses one whose outputs `names` would overwrite one of
+/// the `inputs`; returns its canonical path.
+///
+/// # Errors
+///
+/// [`Error::Io`] if it cannot be created, [`Error::Overwrite`] if it would overwrite an
+/// input.
+pub fn prepare_output_dir(dir: &Path, inputs: &[&Path], names: &[String]) -> Result<PathBuf> {
+    let io_error = |cause| Error::Io {
+        path: dir.to_path_buf(),
+        cause,
+    };
+    std::fs::create_dir_all(dir).map_err(io_error)?;
+    let out_dir = dir.canonicalize().map_err(io_error)?;
+    for input in inputs {
+        let Ok(input_path) = input.canonicalize() else {
+            continue;
+        };
+        let name = input_path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned());
+        if input_path.parent() == Some(out_dir.as_path())
+            && name.as_ref().is_some_and(|n| names.iter().any(|m| m == n))
+        {
+            return Err(Error::Overwrite {
+                output: dir.to_path_buf(),
+                input: input.to_path_buf(),
+            });
+        }
+    }
+    Ok(out_dir)
+}

@@ -1,0 +1,13 @@
+//! The application layer: a morph from a [`config::MorphConfig`] to a folder of results,
+//! as a library call. The command line (`src/bin/deepmorph`) only parses arguments, shows
+//! progress, handles Ctrl-C and maps outcomes to exit codes.
+//!
+//! - [`config`]: the settings of a whole morph, serialisable; `config.json`'s record.
+//! - [`job`]: prepare (check, read, size, memory), run, write the outputs.
+//! - [`memory`]: the peak-memory estimate and the refusal of what would not fit.
+//! - [`demo`]: the built-in synthetic pair.
+
+pub mod config;
+pub mod demo;
+pub mod job;
+pub mod memory;

@@ -1,0 +1,295 @@
+//! The command line: its subcommands, the morph options and how they become a [`MorphConfig`]: the library's defaults (or an
+//! earlier run's `config.json`), overridden by the flags given. Every default shown in
+//! `--help` is read from the library, never written here.
+
+use std::fmt::Display;
+use std::path::PathBuf;
+
+use anyhow::{Result, bail};
+use clap::{Args, Parser, Subcommand};
+use deepmorph::app::config::{DeepModel, Inputs, Model, MorphConfig, RunRecord, WorkingSize};
+use deepmorph::model::feature_model::DeepConfig;
+use deepmorph::eval::synthetic::Field;
+use deepmorph::{Backend, EnergyParams};
+
+/// `text [default: value]`.
+fn default<T: Display>(text: &str, value: T) -> String {
+    format!("{text} [default: {value}]")
+}
+
+/// `text [default: rgb; deep model: deep]`.
+fn per_model<T: Display>(text: &str, rgb: T, deep: T) -> String {
+    format!("{text} [default: {rgb}; deep model: {deep}]")
+}
+
+/// `text [default: paper; demo: demo]`.
+fn per_command<T: Display>(text: &str, paper: T, demo: T) -> String {
+    format!("{text} [default: {paper}; demo: {demo}]")
+}
+
+fn rgb() -> MorphConfig {
+    MorphConfig::default()
+}
+
+fn deep() -> DeepConfig {
+    DeepConfig::default()
+}
+
+/// The options every morph takes (`morph` and `demo`).
+#[derive(Args, Clone, Debug)]
+pub struct RunArgs {
+    /// Output directory (created if needed).
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Start from the settings (and, for `morph` without images, the inputs) of an earlier
+    /// run's config.json; the flags given override them.
+    #[arg(long, value_name = "FILE")]
+    pub config: Option<PathBuf>,
+    #[arg(short = 'K', long = "steps", help = per_command("Number of steps K (K+1 frames)", rgb().solver.steps, MorphConfig::demo().solver.steps))]
+    steps: Option<usize>,
+    #[arg(long, help = per_command("Pyramid levels", rgb().solver.levels, MorphConfig::demo().solver.levels))]
+    levels: Option<usize>,
+    #[arg(long, help = per_command("iPALM sweeps J per level", rgb().solver.sweeps, MorphConfig::demo().solver.sweeps))]
+    sweeps: Option<usize>,
+    #[arg(long, allow_negative_numbers = true, help = default("Weight 1/delta of the data term", EnergyParams::rgb().delta))]
+    delta: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = per_model("Volume term weight lambda of W", EnergyParams::rgb().lambda, EnergyParams::deep().lambda))]
+    lambda: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = per_model("Strain term weight mu of W", EnergyParams::rgb().mu, EnergyParams::deep().mu))]
+    mu: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = default("Edge sensitivity xi1 of the anisotropy", EnergyParams::rgb().xi1))]
+    xi1: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = default("Lower bound xi2 of the anisotropy", EnergyParams::rgb().xi2))]
+    xi2: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = default("Pre-smoothing sigma of the anisotropy, pixels", EnergyParams::rgb().sigma))]
+    sigma: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = default("Gradient smoothing rho of the anisotropy, pixels", EnergyParams::rgb().rho))]
+    rho: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = default("Inertial extrapolation beta of iPALM, in [0, 1)", rgb().solver.ipalm.beta))]
+    beta: Option<f64>,
+    /// Run the paper's plain iPALM, without the energy safeguard of SPEC §6.
+    #[arg(long)]
+    no_safeguard: bool,
+    #[arg(long, value_enum, help = default("Block order of a sweep: sequential (the paper's Algorithm 1) or batched (all deformations, then odd, then even frames, each as one stacked operation)", format!("{:?}", rgb().solver.ipalm.schedule).to_lowercase()))]
+    schedule: Option<deepmorph::solver::ipalm::Schedule>,
+    #[arg(long, value_name = "X", allow_negative_numbers = true, help = default("Stop a level once E decreased by less than X (relative) over the last 10 sweeps; 0 = run all J sweeps", rgb().solver.tolerance))]
+    tol: Option<f64>,
+    #[arg(long, value_enum, help = default("rgb: images compared by colour; deep: by VGG19 features (needs --vgg19; sizes are rounded to multiples of 16, at most 5 levels)", "rgb"))]
+    model: Option<Model>,
+    /// VGG19 weights for the deep model: an ONNX file (torchvision export or ONNX model zoo)
+    /// or a safetensors file with torchvision key names.
+    #[arg(long, value_name = "FILE")]
+    vgg19: Option<PathBuf>,
+    #[arg(long, allow_negative_numbers = true, help = default("Deep model: weight eta of the RGB channels inside the feature vector", deep().eta))]
+    eta: Option<f64>,
+    #[arg(long, allow_negative_numbers = true, help = default("Deep model: RMS tau each level's VGG features are scaled to (SPEC §4)", deep().feature_rms))]
+    feature_rms: Option<f64>,
+    #[arg(long, help = default("Deep model: feature-only sweeps J_pre after each prolongation", deep().pre_sweeps))]
+    pre_sweeps: Option<usize>,
+    /// Refuse to start when the estimated peak memory exceeds this many GiB [default: the
+    /// memory available now].
+    #[arg(long, value_name = "GIB", allow_negative_numbers = true)]
+    max_memory: Option<f64>,
+    #[arg(long, value_enum, help = default("Compute backend, as compiled in", rgb().backend))]
+    backend: Option<Backend>,
+    /// The GIF plays forward and back.
+    #[arg(long)]
+    pingpong: bool,
+    /// Print nothing but errors.
+    #[arg(short, long, conflicts_with = "verbose")]
+    pub quiet: bool,
+    /// One log line per sweep.
+    #[arg(short, long)]
+    pub verbose: bool,
+}
+
+impl RunArgs {
+    /// The base settings and inputs: `--config`'s, or the library's defaults for `base`.
+    fn base(&self, base: MorphConfig) -> Result<(MorphConfig, Option<Inputs>)> {
+        Ok(match &self.config {
+            Some(path) => {
+                let record = RunRecord::read(path)?;
+                (record.config, Some(record.inputs))
+            }
+            None => (base, None),
+        })
+    }
+
+    /// The settings of this morph and the inputs of `--config`, if any: `base` (the
+    /// library's defaults of the command) or the `--config` file's, overridden by every flag
+    /// given.
+    pub fn resolve(&self, base: MorphConfig) -> Result<(MorphConfig, Option<Inputs>)> {
+        let (mut config, inputs) = self.base(base)?;
+        let model = self.model.unwrap_or(config.model());
+        match (model, &self.vgg19) {
+            (Model::Rgb, Some(_)) => bail!("--vgg19 is used only by --model deep"),
+            (Model::Rgb, None) if config.deep.is_some() => {
+                config.deep = None;
+                config.solver.params.lambda = EnergyParams::rgb().lambda;
+                config.solver.params.mu = EnergyParams::rgb().mu;
+            }
+            (Model::Deep, vgg19) => {
+                let Some(vgg19) = vgg19
+                    .clone()
+                    .or_else(|| config.deep.as_ref().map(|d| d.vgg19.clone()))
+                else {
+                    bail!(
+                        "--model deep needs VGG19 weights: --vgg19 FILE (an ONNX or safetensors \
+                         VGG19; see the README for where to get one)"
+                    );
+                };
+                if config.deep.is_none() {
+                    config.solver.params.lambda = EnergyParams::deep().lambda;
+                    config.solver.params.mu = EnergyParams::deep().mu;
+                }
+                let features = config.deep.map_or_else(DeepConfig::default, |d| d.features);
+                config.deep = Some(DeepModel { vgg19, features });
+            }
+            (Model::Rgb, None) => {}
+        }
+        let solver = &mut config.solver;
+        let set = |target: &mut usize, value: Option<usize>| {
+            if let Some(v) = value {
+                *target = v;
+            }
+        };
+        set(&mut solver.steps, self.steps);
+        set(&mut solver.levels, self.levels);
+        set(&mut solver.sweeps, self.sweeps);
+        let params = &mut solver.params;
+        for (target, value) in [
+            (&mut params.delta, self.delta),
+            (&mut params.lambda, self.lambda),
+            (&mut params.mu, self.mu),
+            (&mut params.xi1, self.xi1),
+            (&mut params.xi2, self.xi2),
+            (&mut params.sigma, self.sigma),
+            (&mut params.rho, self.rho),
+            (&mut solver.ipalm.beta, self.beta),
+        ] {
+            if let Some(v) = value {
+                *target = v;
+            }
+        }
+        if self.no_safeguard {
+            solver.ipalm.safeguard = false;
+        }
+        solver.ipalm.schedule = self.schedule.unwrap_or(solver.ipalm.schedule);
+        solver.tolerance = self.tol.unwrap_or(solver.tolerance);
+        if let Some(deep) = &mut config.deep {
+            let f = &mut deep.features;
+            f.eta = self.eta.unwrap_or(f.eta);
+            f.feature_rms = self.feature_rms.unwrap_or(f.feature_rms);
+            f.pre_sweeps = self.pre_sweeps.unwrap_or(f.pre_sweeps);
+        } else if self.eta.is_some() || self.feature_rms.is_some() || self.pre_sweeps.is_some() {
+            bail!("--eta, --feature-rms and --pre-sweeps are used only by --model deep");
+        }
+        if let Some(gib) = self.max_memory {
+            if !(gib.is_finite() && gib > 0.0) {
+                bail!("invalid --max-memory {gib}: must be a number of GiB > 0");
+            }
+            config.max_memory_gib = Some(gib);
+        }
+        config.backend = self.backend.unwrap_or(config.backend);
+        config.pingpong |= self.pingpong;
+        Ok((config, inputs))
+    }
+}
+
+/// `WxH` → `(H, W)`.
+pub fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
+    let bad = || format!("`{s}` is not WxH (e.g. 256x192)");
+    let (w, h) = s.split_once(['x', 'X']).ok_or_else(bad)?;
+    let parse = |v: &str| v.trim().parse::<usize>().map_err(|_| bad());
+    Ok((parse(h)?, parse(w)?))
+}
+
+/// The working size of `morph`: `--size`, else `--max-side`, else the base config's.
+pub fn working_size(
+    size: Option<(usize, usize)>,
+    max_side: Option<usize>,
+    base: WorkingSize,
+) -> WorkingSize {
+    match (size, max_side) {
+        (Some((height, width)), _) => WorkingSize::Exact { height, width },
+        (None, Some(max_side)) => WorkingSize::Fit { max_side },
+        (None, None) => base,
+    }
+}
+
+#[derive(Parser)]
+#[command(
+    name = "deepmorph",
+    version,
+    about = "Image morphing as a time-discrete geodesic in the metamorphosis model"
+)]
+pub(crate) struct Cli {
+    #[command(subcommand)]
+    pub(crate) command: Command,
+}
+
+#[derive(Subcommand)]
+pub(crate) enum Command {
+    /// Morph image A into image B.
+    Morph {
+        /// The first image (any common format; alpha dropped, grey expanded to RGB); with
+        /// --config and no images, the recorded ones.
+        #[arg(requires = "b")]
+        a: Option<PathBuf>,
+        /// The last image (resized to A's working size if it differs).
+        b: Option<PathBuf>,
+        /// Working size WxH (each a multiple of 2^(levels-1), and of 16 for the deep model).
+        #[arg(long, value_parser = parse_size, conflicts_with = "max_side")]
+        size: Option<(usize, usize)>,
+        /// Longest side of the working size when --size is not given [default: 256].
+        #[arg(long)]
+        max_side: Option<usize>,
+        #[command(flatten)]
+        run: RunArgs,
+    },
+    /// Morph a built-in synthetic pair (shapes that move, turn and change colour); about a
+    /// minute on 2 CPU cores.
+    Demo {
+        /// Side of the square demo images [default: 96].
+        #[arg(long)]
+        size: Option<usize>,
+        #[command(flatten)]
+        run: RunArgs,
+    },
+    /// Quality numbers of a finished morph (composed map, det J, energy split, warp
+    /// consistency, endpoint error against a ground truth); writes DIR/metrics.json.
+    Eval {
+        /// A morph's output directory.
+        dir: PathBuf,
+        /// Ground truth for the first image: a Middlebury disparity PNG (16-bit, d x 256,
+        /// 0 = unknown) or a Middlebury .flo flow file, at the input image's size.
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Compute backend, as compiled in.
+        #[arg(long, value_enum)]
+        backend: Option<Backend>,
+        /// Print only errors.
+        #[arg(short, long)]
+        quiet: bool,
+    },
+    /// Make a synthetic pair with a known deformation: OUT/a.png = IMAGE warped,
+    /// OUT/b.png = IMAGE, OUT/truth.flo = the correspondence of a to b.
+    Warp {
+        /// The image to warp.
+        image: PathBuf,
+        /// smooth: a swirl, AMOUNT = largest displacement in pixels; rotate: AMOUNT degrees
+        /// at the centre; shear: AMOUNT columns per row at the centre. All fade out to the
+        /// fixed border.
+        #[arg(long, value_enum, default_value_t = Field::Smooth)]
+        field: Field,
+        /// Size of the deformation (see --field).
+        #[arg(long, allow_negative_numbers = true)]
+        amount: f64,
+        /// Output directory (created if needed).
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Compute backend, as compiled in.
+        #[arg(long, value_enum)]
+        backend: Option<Backend>,
+    },
+}

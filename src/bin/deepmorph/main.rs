@@ -1,0 +1,194 @@
+//! `deepmorph`: morph one image into another along a time-discrete geodesic.
+//!
+//! The library does the work ([`deepmorph::app`]); this program parses arguments, shows
+//! progress, turns Ctrl-C and SIGTERM into a clean stop, and maps outcomes to exit codes.
+
+mod args;
+mod progress;
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use anyhow::{Context, Result};
+use clap::Parser;
+use deepmorph::app::config::{Inputs, MorphConfig};
+use deepmorph::app::job::{MorphJob, prepare_output_dir, write_metrics};
+use deepmorph::app::memory;
+use deepmorph::eval::folder::MorphFolder;
+use deepmorph::eval::synthetic::{Field, warped_pair};
+use deepmorph::io::images::{RgbImage, write_png};
+use deepmorph::io::outputs::save_composed;
+use deepmorph::io::truth::Correspondence;
+use deepmorph::solver::observer::Termination;
+use deepmorph::{Backend, Precision};
+
+use args::{Cli, Command, RunArgs, working_size};
+use progress::{Progress, Verbosity};
+
+/// The solver allocates and frees tensors of megabytes many times per sweep. glibc's malloc
+/// hands such blocks back to the kernel each time, and the next allocation page-faults them in
+/// again: a third of a deep sweep's time at 128² went to page faults. mimalloc keeps them.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// Exit status of an error: bad input, unreadable or unwritable files, no backend.
+const EXIT_ERROR: i32 = 1;
+/// Exit status of a morph stopped by a NaN or infinity in the optimisation; its outputs were
+/// written from the last finite iterate. (clap's usage errors exit with 2.)
+const EXIT_NONFINITE: i32 = 3;
+/// Exit status of a morph stopped by Ctrl-C or SIGTERM; its outputs were written.
+const EXIT_INTERRUPTED: i32 = 130;
+
+fn main() {
+    let code = run(Cli::parse()).unwrap_or_else(|e| {
+        eprintln!("Error: {e:#}");
+        EXIT_ERROR
+    });
+    std::process::exit(code);
+}
+
+fn run(cli: Cli) -> Result<i32> {
+    let (config, inputs, run) = match cli.command {
+        Command::Eval { dir, truth, backend, quiet } => return eval(&dir, truth, backend, quiet),
+        Command::Warp { image, field, amount, output, backend } => {
+            return warp(&image, field, amount, &output, backend);
+        }
+        Command::Morph { a, b, size, max_side, run } => {
+            let (mut config, recorded) = run.resolve(MorphConfig::default())?;
+            config.size = working_size(size, max_side, config.size);
+            let inputs = match (a, b, recorded) {
+                (Some(a), Some(b), _) => Inputs::Files { a, b },
+                (_, _, Some(recorded)) => recorded,
+                _ => anyhow::bail!("morph needs two images A and B (or --config with a run's config.json)"),
+            };
+            (config, inputs, run)
+        }
+        Command::Demo { size, run } => {
+            let (mut config, _) = run.resolve(MorphConfig::demo())?;
+            if let Some(side) = size {
+                config.size = deepmorph::app::config::WorkingSize::Exact { height: side, width: side };
+            }
+            (config, Inputs::Demo, run)
+        }
+    };
+    morph(config, inputs, &run)
+}
+
+fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
+    let mut job = MorphJob::prepare(config, inputs)?;
+    if let Some((level, sweep)) = injected_fault()? {
+        job = job.inject_nonfinite(level, sweep);
+    }
+    let out = prepare_output_dir(&args.output, &job.inputs().files(), &job.output_names())?;
+    let interrupt = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&interrupt);
+    ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            std::process::exit(EXIT_INTERRUPTED); // a second signal does not wait
+        }
+        eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (Ctrl-C again to abort)");
+    })
+    .context("installing the Ctrl-C handler")?;
+    let verbosity = match (args.quiet, args.verbose) {
+        (true, _) => Verbosity::Quiet,
+        (_, true) => Verbosity::Verbose,
+        _ => Verbosity::Normal,
+    };
+    let config = job.config();
+    let (h, w) = job.working_size();
+    if !args.quiet {
+        job.notes().iter().for_each(|note| eprintln!("{note}"));
+        let model = format!("{:?}", config.model()).to_lowercase();
+        let solver = &config.solver;
+        eprintln!(
+            "{}: {model} model, {w}x{h} (WxH), K = {}, {} levels x {} sweeps, {} backend, about {:.1} GiB",
+            if job.inputs() == &Inputs::Demo { "demo" } else { "morph" },
+            solver.steps,
+            solver.levels,
+            solver.sweeps,
+            config.backend,
+            memory::gib(job.estimated_peak_bytes())
+        );
+    }
+    let mut progress = Progress::new(verbosity);
+    let result = job.run(&mut progress, &interrupt)?;
+    drop(progress);
+    let metrics = result.write(&job, &out)?;
+    let termination = &result.morph.termination;
+    if let Termination::NonFinite { .. } = termination {
+        eprintln!("Error: {termination}; wrote every output from that iterate to {}", out.display());
+        return Ok(EXIT_NONFINITE);
+    }
+    if !args.quiet {
+        let last = result.energy.records.last().map_or(f64::NAN, |r| r.energy);
+        eprintln!(
+            "{termination} in {:.1} s, final E = {last:.6e}; wrote {} frames, morph.gif, sheet.png, deformations, composed map, energy.csv, config.json, metrics.json to {}",
+            result.seconds,
+            config.solver.steps + 1,
+            out.display()
+        );
+        if args.verbose {
+            eprint!("{metrics}");
+        }
+    }
+    Ok(match termination {
+        Termination::Interrupted { .. } => EXIT_INTERRUPTED,
+        _ => 0,
+    })
+}
+
+/// `DEEPMORPH_INJECT_NONFINITE=LEVEL:SWEEP` makes the solver meet a NaN after that sweep: the
+/// tests' way to check the non-finite path end to end (outputs written, exit status 3).
+fn injected_fault() -> Result<Option<(usize, usize)>> {
+    let Some(value) = std::env::var_os("DEEPMORPH_INJECT_NONFINITE") else {
+        return Ok(None);
+    };
+    let value = value.to_string_lossy();
+    let parsed = value
+        .split_once(':')
+        .and_then(|(l, s)| Some((l.trim().parse().ok()?, s.trim().parse().ok()?)));
+    parsed
+        .map(Some)
+        .with_context(|| format!("DEEPMORPH_INJECT_NONFINITE={value} is not LEVEL:SWEEP"))
+}
+
+fn backend_or_default(backend: Option<Backend>) -> Backend {
+    backend.unwrap_or(MorphConfig::default().backend)
+}
+
+/// `deepmorph eval`: reads a morph's folder, prints its metrics and writes `metrics.json`.
+fn eval(dir: &Path, truth: Option<PathBuf>, backend: Option<Backend>, quiet: bool) -> Result<i32> {
+    let device = backend_or_default(backend).device_for(Precision::F32)?;
+    let folder = MorphFolder::read(dir, &device)?;
+    let truth = truth.map(|path| Correspondence::load(&path).map(|t| (t, path))).transpose()?;
+    let composed = folder.composed();
+    save_composed(dir, composed.clone())?;
+    let name = truth.as_ref().map(|(_, path)| path.display().to_string());
+    let metrics = folder.metrics(composed, truth.as_ref().map(|(t, _)| t).zip(name.as_deref()))?;
+    write_metrics(dir, &metrics)?;
+    if !quiet {
+        print!("{metrics}");
+    }
+    Ok(0)
+}
+
+/// `deepmorph warp`: a synthetic pair with a known correspondence.
+fn warp(image: &Path, field: Field, amount: f64, out: &Path, backend: Option<Backend>) -> Result<i32> {
+    let input = RgbImage::load(image)?;
+    let device = backend_or_default(backend).device_for(Precision::F32)?;
+    let (warped, truth) = warped_pair(&input, field, amount, &device)?;
+    let names = ["a.png", "b.png", "truth.flo"].map(String::from);
+    let out = prepare_output_dir(out, &[image], &names)?;
+    write_png(&out.join("a.png"), &warped.to_rgb8())?;
+    write_png(&out.join("b.png"), &input.to_rgb8())?;
+    truth.write_flo(&out.join("truth.flo"))?;
+    eprintln!(
+        "wrote a.png ({field} {amount} applied to {}), b.png and truth.flo ({}x{}) to {}",
+        image.display(),
+        input.width(),
+        input.height(),
+        out.display()
+    );
+    Ok(0)
+}

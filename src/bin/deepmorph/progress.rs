@@ -1,0 +1,130 @@
+//! The command line's progress report: a bar per level on a terminal, or a line per sweep.
+
+use std::io::IsTerminal;
+
+use deepmorph::solver::observer::{Observer, Phase, SweepEvent};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+
+/// How much the command line prints while a morph runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Verbosity {
+    /// Nothing.
+    Quiet,
+    /// A progress bar per level, only when stderr is a terminal.
+    Normal,
+    /// One line per sweep on stderr.
+    Verbose,
+}
+
+/// The command line's progress report: a bar per level (sweep, energy, speed) or a line per
+/// sweep.
+pub struct Progress {
+    verbosity: Verbosity,
+    bar: Option<ProgressBar>,
+}
+
+impl Progress {
+    /// A reporter at `verbosity`; the bar is hidden when stderr is not a terminal.
+    pub fn new(verbosity: Verbosity) -> Self {
+        Self {
+            verbosity,
+            bar: None,
+        }
+    }
+
+    fn new_bar(&self, e: &SweepEvent<'_>) -> ProgressBar {
+        let bar = ProgressBar::new(e.sweeps as u64);
+        if self.verbosity != Verbosity::Normal || !std::io::stderr().is_terminal() {
+            bar.set_draw_target(ProgressDrawTarget::hidden());
+        }
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{prefix} [{bar:30}] {pos}/{len} sweeps  {msg}  {per_sec} eta {eta}",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
+        );
+        bar.set_prefix(format!(
+            "level {}/{} {}x{}{}",
+            e.level + 1,
+            e.levels,
+            e.grid.height(),
+            e.grid.width(),
+            if e.phase == Phase::Features {
+                " features only"
+            } else {
+                ""
+            }
+        ));
+        bar
+    }
+}
+
+impl Observer for Progress {
+    fn sweep(&mut self, e: &SweepEvent<'_>) {
+        if self.verbosity == Verbosity::Quiet {
+            return;
+        }
+        if e.sweep == 0 {
+            if let Some(done) = self.bar.take() {
+                done.finish();
+            }
+            self.bar = Some(self.new_bar(e));
+        }
+        if let Some(bar) = &self.bar {
+            bar.set_position(e.sweep as u64);
+            bar.set_message(format!("E {:.5e}", e.energy));
+            if e.sweep == e.sweeps && e.level + 1 == e.levels && e.phase == Phase::Joint {
+                bar.finish();
+            }
+        }
+        if self.verbosity == Verbosity::Verbose {
+            let (trials, restarts, drops_phi, drops_f) = e.report.map_or((0, 0, 0, 0), |r| {
+                (
+                    r.deformation.iter().map(|s| s.trials).sum::<usize>(),
+                    r.restarts(),
+                    r.deformation_drops(),
+                    r.feature_drops(),
+                )
+            });
+            eprintln!(
+                "level {} ({}x{}) {}sweep {:>4}/{}: E = {:.6e} (R {:.4e}, D {:.4e}), phi trials {trials}, restarts {restarts}, dropped phi {drops_phi} f {drops_f}, {:.1} s",
+                e.level,
+                e.grid.height(),
+                e.grid.width(),
+                if e.phase == Phase::Features {
+                    "feature-only "
+                } else {
+                    ""
+                },
+                e.sweep,
+                e.sweeps,
+                e.energy,
+                e.regularizer,
+                e.data,
+                e.seconds
+            );
+            if let Some(stop) = e.stop {
+                let peak = deepmorph::app::memory::peak_resident_bytes()
+                    .map_or(String::new(), |p| {
+                        format!("; peak memory so far {:.0} MiB", p as f64 / (1u64 << 20) as f64)
+                    });
+                eprintln!(
+                    "level {} done after {} sweeps ({}) at {:.1} s{peak}",
+                    e.level,
+                    e.sweep,
+                    stop.name(),
+                    e.seconds
+                );
+            }
+        }
+    }
+}
+
+impl Drop for Progress {
+    fn drop(&mut self) {
+        if let Some(bar) = self.bar.take() {
+            bar.abandon();
+        }
+    }
+}

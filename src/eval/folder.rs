@@ -1,0 +1,122 @@
+//! Evaluating a finished morph from its output directory: what `deepmorph eval` runs and
+//! what every morph writes as `metrics.json`.
+//!
+//! It reads only files (the deformations, the first and last frame, `energy.csv`; the run's
+//! `config.json` must be there), so a morph evaluated at its end and the same folder
+//! evaluated later give the same numbers. The frames are the written 8-bit PNGs: the warp-consistency figures
+//! are those of what the user sees (8-bit rounding alone caps the PSNR near 59 dB).
+
+use std::path::Path;
+
+use burn::tensor::{Device, Tensor};
+
+use crate::backend::Precision;
+use crate::error::{Error, Result};
+use crate::model::grid::Grid;
+use crate::io::images::{RgbImage, read_bytes};
+use crate::eval::metrics::{Metrics, compose};
+use crate::io::energy_log::EnergyLog;
+use crate::io::outputs::{CONFIG, DEFORMATIONS_HEADER, frame_name, load_deformations};
+use crate::io::truth::Correspondence;
+
+/// A morph's output directory, read back.
+pub struct MorphFolder {
+    /// `K`.
+    pub steps: usize,
+    /// `φ_1..φ_K`, `[K, 2, H, W]` on the evaluation device.
+    pub deformations: Tensor<4>,
+    /// `u_0` and `u_K`, `[1, 3, H, W]`.
+    pub endpoints: (Tensor<4>, Tensor<4>),
+    /// `energy.csv`.
+    pub energy: EnergyLog,
+    /// The working grid.
+    pub grid: Grid,
+}
+
+impl MorphFolder {
+    /// Reads `dir` onto `device` (float32).
+    ///
+    /// # Errors
+    ///
+    /// [`Error::Io`] or [`Error::Format`] naming the missing or malformed file, or a
+    /// mismatch between the files (sizes, number of steps).
+    pub fn read(dir: &Path, device: &Device) -> Result<Self> {
+        let format = |name: &str, detail: String| Error::Format {
+            path: dir.join(name),
+            detail,
+        };
+        if !dir.join(CONFIG).is_file() {
+            return Err(format(
+                CONFIG,
+                "not found: not the output folder of a morph (`deepmorph morph` writes \
+                 config.json beside the deformations, frames and energy.csv)"
+                    .into(),
+            ));
+        }
+        // The deformations' grid, not necessarily the working size: an interrupted morph
+        // writes the level it reached.
+        let (shape, phi) = load_deformations(dir)?;
+        let [k, two, h, w] = shape;
+        if two != 2 || k == 0 {
+            return Err(format(
+                DEFORMATIONS_HEADER,
+                format!("shape {shape:?}: expected [K, 2, H, W] with K >= 1"),
+            ));
+        }
+        let grid = Grid::new(h, w, device, Precision::F32.dtype())?;
+        let deformations = grid.tensor(phi.into_iter().map(f64::from).collect(), shape);
+
+        let frame = |i: usize| -> Result<Tensor<4>> {
+            let name = frame_name(i, k);
+            let image = RgbImage::load(&dir.join(&name))?;
+            if (image.height(), image.width()) != (h, w) {
+                return Err(format(
+                    &name,
+                    format!(
+                        "{}x{}, but the deformations are {w}x{h}",
+                        image.width(),
+                        image.height()
+                    ),
+                ));
+            }
+            image.to_tensor(&grid)
+        };
+        let endpoints = (frame(0)?, frame(k)?);
+
+        let csv = String::from_utf8_lossy(&read_bytes(&dir.join("energy.csv"))?).into_owned();
+        let energy = EnergyLog::from_csv(&csv).map_err(|e| format("energy.csv", e))?;
+        Ok(Self {
+            steps: k,
+            deformations,
+            endpoints,
+            energy,
+            grid,
+        })
+    }
+
+    /// The composed map `Φ`, `[1, 2, H, W]`.
+    pub fn composed(&self) -> Tensor<4> {
+        compose(&self.grid, self.deformations.clone())
+    }
+
+    /// Every quality number of the folder's morph, `composed` being its [`composed`](Self::composed)
+    /// map; with `truth` (and its name), also the endpoint error of `Φ` against it.
+    ///
+    /// # Errors
+    ///
+    /// If a value is NaN.
+    pub fn metrics(
+        &self,
+        composed: Tensor<4>,
+        truth: Option<(&Correspondence, &str)>,
+    ) -> Result<Metrics> {
+        Metrics::compute(
+            &self.grid,
+            self.deformations.clone(),
+            composed,
+            self.endpoints.clone(),
+            &self.energy.records,
+            truth,
+        )
+    }
+}

@@ -1,0 +1,280 @@
+//! Image files ↔ host images ↔ tensors, and crash-safe file writing.
+
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use burn::tensor::Tensor;
+use image::imageops::FilterType;
+
+use crate::error::{Error, Result};
+use crate::model::grid::{Grid, host_values};
+
+/// An RGB image on the host: values in `[0, 1]`, channel-major `[3, H, W]`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RgbImage {
+    height: usize,
+    width: usize,
+    data: Vec<f32>,
+}
+
+impl RgbImage {
+    /// An image from channel-major values (`3 · height · width` of them).
+    ///
+    /// # Errors
+    ///
+    /// If the length does not fit the size or a value is not finite.
+    pub fn new(height: usize, width: usize, data: Vec<f32>) -> Result<Self> {
+        if data.len() != 3 * height * width {
+            return Err(Error::Shape {
+                op: "RgbImage::new",
+                detail: format!("{} values for a 3x{height}x{width} image", data.len()),
+            });
+        }
+        if let Some(bad) = data.iter().find(|v| !v.is_finite()) {
+            return Err(Error::NonFinite {
+                what: format!("image value {bad}"),
+            });
+        }
+        Ok(Self {
+            height,
+            width,
+            data,
+        })
+    }
+
+    /// Reads any format the `image` crate decodes here (PNG, JPEG, GIF, BMP, TIFF, WebP,
+    /// PNM, TGA, QOI). Alpha is dropped, grey is expanded to RGB, 16-bit is scaled to
+    /// `[0, 1]`.
+    ///
+    /// # Errors
+    ///
+    /// [`Error::Image`] naming the file if it cannot be read or decoded.
+    pub fn load(path: &Path) -> Result<Self> {
+        Ok(Self::from_dynamic(&decode_image(path)?))
+    }
+
+    fn from_dynamic(img: &image::DynamicImage) -> Self {
+        let rgb = img.to_rgb32f();
+        let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+        let mut data = vec![0.0f32; 3 * h * w];
+        for (x, y, p) in rgb.enumerate_pixels() {
+            let at = y as usize * w + x as usize;
+            for c in 0..3 {
+                data[c * h * w + at] = p[c].clamp(0.0, 1.0);
+            }
+        }
+        Self {
+            height: h,
+            width: w,
+            data,
+        }
+    }
+
+    /// Rows.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Columns.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// The channel-major values.
+    pub fn data(&self) -> &[f32] {
+        &self.data
+    }
+
+    /// Resampled to `height × width` with a Lanczos-3 filter (bringing inputs to the
+    /// working size is outside the model, SPEC §7, so any good resampling will do).
+    pub fn resized(&self, height: usize, width: usize) -> Self {
+        if (height, width) == (self.height, self.width) {
+            return self.clone();
+        }
+        let resized = image::imageops::resize(
+            &self.to_rgb32f(),
+            width as u32,
+            height as u32,
+            FilterType::Lanczos3,
+        );
+        Self::from_dynamic(&image::DynamicImage::ImageRgb32F(resized))
+    }
+
+    fn to_rgb32f(&self) -> image::Rgb32FImage {
+        let (h, w) = (self.height, self.width);
+        image::Rgb32FImage::from_fn(w as u32, h as u32, |x, y| {
+            let at = y as usize * w + x as usize;
+            image::Rgb([0, 1, 2].map(|c| self.data[c * h * w + at]))
+        })
+    }
+
+    /// 8-bit RGB, values clamped to `[0, 1]` (SPEC §8).
+    pub fn to_rgb8(&self) -> image::RgbImage {
+        let (h, w) = (self.height, self.width);
+        image::RgbImage::from_fn(w as u32, h as u32, |x, y| {
+            let at = y as usize * w + x as usize;
+            image::Rgb([0, 1, 2].map(|c| to_byte(self.data[c * h * w + at])))
+        })
+    }
+
+    /// The image as a `[1, 3, H, W]` tensor on `grid`'s device and dtype.
+    ///
+    /// # Errors
+    ///
+    /// If the grid's size differs from the image's.
+    pub fn to_tensor(&self, grid: &Grid) -> Result<Tensor<4>> {
+        if (grid.height(), grid.width()) != (self.height, self.width) {
+            return Err(Error::Shape {
+                op: "RgbImage::to_tensor",
+                detail: format!(
+                    "image is {}x{}, grid is {}x{}",
+                    self.height,
+                    self.width,
+                    grid.height(),
+                    grid.width()
+                ),
+            });
+        }
+        let values = self.data.iter().map(|&v| f64::from(v)).collect();
+        Ok(grid.tensor(values, [1, 3, self.height, self.width]))
+    }
+
+    /// The image of a `[1, 3, H, W]` (or `[3, H, W]`-sized) tensor, clamped to `[0, 1]`.
+    ///
+    /// # Errors
+    ///
+    /// If the tensor does not hold 3 channels or holds a NaN.
+    pub fn from_tensor(t: Tensor<4>) -> Result<Self> {
+        let [n, c, h, w] = t.dims();
+        if n != 1 || c != 3 {
+            return Err(Error::Shape {
+                op: "RgbImage::from_tensor",
+                detail: format!("expected [1, 3, H, W], got {:?}", t.dims()),
+            });
+        }
+        let data = host_values(t)?
+            .into_iter()
+            .map(|v| v.clamp(0.0, 1.0) as f32)
+            .collect();
+        Self::new(h, w, data)
+    }
+}
+
+/// The bytes of a file.
+///
+/// # Errors
+///
+/// [`Error::Io`] naming the file.
+pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
+    fs::read(path).map_err(|source| Error::Io {
+        path: path.to_path_buf(),
+        cause: source,
+    })
+}
+
+/// Reads and decodes an image file in any format the `image` crate decodes here, guessing
+/// the format from the contents.
+///
+/// # Errors
+///
+/// [`Error::Io`] or [`Error::Image`] naming the file.
+pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
+    let io_error = |source| Error::Io {
+        path: path.to_path_buf(),
+        cause: source,
+    };
+    image::ImageReader::open(path)
+        .map_err(io_error)?
+        .with_guessed_format()
+        .map_err(io_error)?
+        .decode()
+        .map_err(|source| Error::Image {
+            path: path.to_path_buf(),
+            cause: source,
+        })
+}
+
+/// `[0, 1]` → `0..=255`, rounded.
+pub fn to_byte(v: f32) -> u8 {
+    (v.clamp(0.0, 1.0) * 255.0).round() as u8
+}
+
+/// Writes a file so that a crash never leaves half of it: the bytes go to a temporary file
+/// beside the target, which is then renamed over it.
+///
+/// # Errors
+///
+/// [`Error::Io`] naming the file.
+pub fn write_atomically(
+    path: &Path,
+    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<()> {
+    let io_error = |source| Error::Io {
+        path: path.to_path_buf(),
+        cause: source,
+    };
+    let name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let temporary: PathBuf = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
+    let result = (|| {
+        let mut file = std::io::BufWriter::new(fs::File::create(&temporary)?);
+        write(&mut file)?;
+        file.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        fs::rename(&temporary, path)
+    })();
+    if result.is_err() {
+        let _ = fs::remove_file(&temporary);
+    }
+    result.map_err(io_error)
+}
+
+/// Encodes `img` as PNG and writes it atomically.
+///
+/// # Errors
+///
+/// [`Error::Io`] or [`Error::Image`] naming the file.
+pub fn write_png(path: &Path, img: &image::RgbImage) -> Result<()> {
+    let mut bytes = Vec::new();
+    img.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )
+    .map_err(|e| Error::Image {
+        path: path.to_path_buf(),
+        cause: e,
+    })?;
+    write_atomically(path, |w| w.write_all(&bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn png_round_trip_and_grey_expansion() {
+        let dir = std::env::temp_dir().join(format!("deepmorph-io-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        let img = RgbImage::new(2, 3, (0..18).map(|i| i as f32 / 17.0).collect()).unwrap();
+        let path = dir.join("a.png");
+        write_png(&path, &img.to_rgb8()).unwrap();
+        let back = RgbImage::load(&path).unwrap();
+        assert_eq!((back.height(), back.width()), (2, 3));
+        for (a, b) in img.data().iter().zip(back.data()) {
+            assert!((a - b).abs() <= 0.5 / 255.0 + 1e-6);
+        }
+        let grey = image::GrayImage::from_fn(3, 2, |x, _| image::Luma([(x * 100) as u8]));
+        let path = dir.join("g.png");
+        grey.save(&path).unwrap();
+        let back = RgbImage::load(&path).unwrap();
+        assert_eq!(back.data()[1], back.data()[6 + 1]);
+        assert_eq!(back.data()[1], back.data()[12 + 1]);
+        let err = RgbImage::load(&dir.join("missing.png"))
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("missing.png"), "{err}");
+        fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,66 @@
+//! The data term `D[f, f̃, φ] = 1/(2 C_tot) Σ_c mean((T[f̃_c, φ] − f_c)²)` (SPEC §5).
+
+use burn::tensor::Tensor;
+
+use crate::model::warp::BSpline;
+
+/// `D[f_n, f̃_n, φ_n]` for each triple of the batch.
+///
+/// `c_tot` is the channel count of the whole feature vector: in the deep model a block of
+/// channels is still divided by it (SPEC §6), so it is not read off `f`.
+///
+/// # Shapes
+/// - `f`: `[N, C, H, W]`, `f_tilde`: `[N, C, H, W]`, `phi`: `[N, 2, H, W]`
+/// - output: `[N]`
+pub fn data_term(
+    bspline: &BSpline,
+    f: Tensor<4>,
+    f_tilde: Tensor<4>,
+    phi: Tensor<4>,
+    c_tot: usize,
+) -> Tensor<1> {
+    data_term_from_coefficients(bspline, f, bspline.coefficients(f_tilde), phi, c_tot)
+}
+
+/// [`data_term`] with the warped frame given by its spline coefficients `P f̃`, which a
+/// sweep computes once per frame and reuses.
+///
+/// # Shapes
+/// - `f`: `[N, C, H, W]`, `coeffs_tilde`: `[N, C, H, W]`, `phi`: `[N, 2, H, W]`
+/// - output: `[N]`
+pub fn data_term_from_coefficients(
+    bspline: &BSpline,
+    f: Tensor<4>,
+    coeffs_tilde: Tensor<4>,
+    phi: Tensor<4>,
+    c_tot: usize,
+) -> Tensor<1> {
+    data_term_from_warped(bspline.interpolate(coeffs_tilde, phi), f, c_tot)
+}
+
+/// [`data_term`] with the warped frame `T[f̃, φ]` given: a feature step keeps `φ` and `f̃`
+/// fixed for a whole backtracking search.
+///
+/// # Shapes
+/// - `warped`: `[N, C, H, W]`, `f`: `[N, C, H, W]`
+/// - output: `[N]`
+pub fn data_term_from_warped(warped: Tensor<4>, f: Tensor<4>, c_tot: usize) -> Tensor<1> {
+    data_term_from_residual(warped - f, c_tot)
+}
+
+/// [`data_term`] from the residual `r = T[f̃, φ] − f`.
+///
+/// # Shapes
+/// - `residual`: `[N, C, H, W]`
+/// - output: `[N]`
+pub fn data_term_from_residual(residual: Tensor<4>, c_tot: usize) -> Tensor<1> {
+    let [n, c, h, w] = residual.dims();
+    let scale = 1.0 / (2.0 * c_tot as f64 * (h * w) as f64);
+    residual
+        .square()
+        .reshape([n, c * h * w])
+        .sum_dim(1)
+        .reshape([n])
+        .mul_scalar(scale)
+}
+

@@ -1,0 +1,32 @@
+//! The anisotropic regulariser `R[φ, a] = mean(a · W(J(φ)))` (SPEC §2).
+
+use burn::tensor::Tensor;
+
+use crate::model::deformation::jacobian;
+use crate::model::energy::density::density;
+
+/// `R[φ_n, a_n]` for each deformation of the batch; `+∞` where `φ_n` folds.
+///
+/// # Shapes
+/// - `phi`: `[N, 2, H, W]`
+/// - `a`: `[N, H, W]`
+/// - output: `[N]`
+pub fn regularizer(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<1> {
+    let [n, _, h, w] = phi.dims();
+    weighted_density(phi, a, lambda, mu)
+        .reshape([n, h * w])
+        .mean_dim(1)
+        .reshape([n])
+}
+
+/// `a · W(J(φ))` at every pixel: the summand of [`regularizer`], for sums accumulated
+/// elsewhere (the solver's decisions add it up in float64).
+///
+/// # Shapes
+/// - `phi`: `[N, 2, H, W]`
+/// - `a`: `[N, H, W]`
+/// - output: `[N, H, W]`
+pub fn weighted_density(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<3> {
+    a * density(&jacobian(phi), lambda, mu)
+}
+

@@ -1,0 +1,178 @@
+//! The pixel grid a level of the model lives on.
+
+use burn::tensor::{DType, Device, FloatDType, Tensor, TensorData};
+
+use crate::backend::{Capabilities, Gather};
+use crate::error::{Error, Result};
+use crate::model::stencil::Matrix;
+
+/// An `H × W` pixel grid (SPEC §0: `H` rows, `W` columns, both at least 4) on a device, in
+/// one precision. Every tensor the library creates for the grid gets this device and dtype,
+/// so the same code runs in float32 on any backend and in float64 for gradient checks.
+#[derive(Clone, Debug)]
+pub struct Grid {
+    height: usize,
+    width: usize,
+    device: Device,
+    dtype: DType,
+    capabilities: Capabilities,
+}
+
+/// How [`Grid::decision_sum`] adds up the values whose sums decide a backtracking test
+/// (SPEC §6, "Floating point").
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Accumulation {
+    /// float32 summands cast to float64 and added in float64: the backend computes in
+    /// float64 (flex, ndarray). The tests need no slack.
+    Float64,
+    /// Everything in float32 (Burn's tree reductions, i.e. pairwise partial sums): the
+    /// backend has no float64 (wgpu). The tests allow a relative slack.
+    Float32,
+}
+
+
+impl Grid {
+    /// A grid of `height × width` pixels.
+    ///
+    /// # Errors
+    ///
+    /// If either side is below 4 (the mirror boundary and the cubic stencil need 4 samples).
+    pub fn new(height: usize, width: usize, device: &Device, dtype: DType) -> Result<Self> {
+        for (name, n) in [("height", height), ("width", width)] {
+            if n < 4 {
+                return Err(Error::invalid(name, n, "at least 4 pixels"));
+            }
+        }
+        Ok(Self {
+            height,
+            width,
+            device: device.clone(),
+            dtype,
+            capabilities: Capabilities::of(device),
+        })
+    }
+
+    /// How decision sums are accumulated on this grid's backend.
+    pub fn accumulation(&self) -> Accumulation {
+        if self.dtype == DType::F64 || self.capabilities.float64 {
+            Accumulation::Float64
+        } else {
+            Accumulation::Float32
+        }
+    }
+
+    /// [`decision_sum`](Self::decision_sum) of each item of a batch: `[N]`.
+    ///
+    /// # Shapes
+    /// - `t`: `[N, …, L]` (rank ≥ 2)
+    pub fn decision_sum_each<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
+        let dims = t.dims();
+        let n = dims[0];
+        let rest = dims.iter().product::<usize>() / n.max(1);
+        let t = t.detach().reshape([n, rest]);
+        match self.accumulation() {
+            Accumulation::Float64 => t.cast(FloatDType::F64).sum_dim(1).reshape([n]),
+            Accumulation::Float32 => t.sum_dim(1).reshape([n]),
+        }
+    }
+
+    /// How the warp reads spline coefficients on this grid's backend.
+    pub fn gather(&self) -> Gather {
+        self.capabilities.gather
+    }
+
+    /// The sum of every entry of `t`, detached, as a `[1]` tensor in float64 where the backend
+    /// has it (SPEC §6: the scalars a decrease test or the safeguard compares). The float32
+    /// summands are cast first: a float32 sum of `67·256²` values is off by ~6e-6 relative,
+    /// and partial sums in float32 keep a systematic rounding bias of the same order (seen
+    /// with 256-value lines: 2.4e-6), enough to turn accept/reject near convergence into noise.
+    pub fn decision_sum<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
+        let t = t.detach();
+        match self.accumulation() {
+            Accumulation::Float64 => t.cast(FloatDType::F64).sum(),
+            Accumulation::Float32 => t.sum(),
+        }
+    }
+
+    /// Rows `H`.
+    pub fn height(&self) -> usize {
+        self.height
+    }
+
+    /// Columns `W`.
+    pub fn width(&self) -> usize {
+        self.width
+    }
+
+    /// `H · W`, the divisor of every `mean` in the SPEC.
+    pub fn pixels(&self) -> usize {
+        self.height * self.width
+    }
+
+    /// The device tensors are created on.
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+
+    /// The float dtype tensors are created with.
+    pub fn dtype(&self) -> DType {
+        self.dtype
+    }
+
+    /// The same grid on another device (e.g. with autodiff enabled).
+    pub fn with_device(&self, device: &Device) -> Self {
+        Self {
+            device: device.clone(),
+            capabilities: Capabilities::of(device),
+            ..self.clone()
+        }
+    }
+
+    /// A tensor from host values, in this grid's device and dtype.
+    pub fn tensor<const D: usize>(&self, values: Vec<f64>, shape: [usize; D]) -> Tensor<D> {
+        Tensor::from_data(TensorData::new(values, shape), (&self.device, self.dtype))
+    }
+
+    /// A host matrix as a `[1, 1, rows, cols]` tensor, ready to broadcast in a batched matmul.
+    pub fn matrix(&self, m: &Matrix) -> Tensor<4> {
+        self.tensor(m.data.clone(), [1, 1, m.rows, m.cols])
+    }
+
+    /// A tensor filled with `value`.
+    pub fn full<const D: usize>(&self, shape: [usize; D], value: f64) -> Tensor<D> {
+        Tensor::full(shape, value, (&self.device, self.dtype))
+    }
+
+    /// The identity deformation `Id`, `[n, 2, H, W]` in pixel units: `Id[0](i, j) = i`,
+    /// `Id[1](i, j) = j` (SPEC §0).
+    pub fn identity(&self, n: usize) -> Tensor<4> {
+        let (h, w) = (self.height, self.width);
+        let mut values = Vec::with_capacity(2 * h * w);
+        values.extend((0..h).flat_map(|i| std::iter::repeat_n(i as f64, w)));
+        values.extend((0..h).flat_map(|_| (0..w).map(|j| j as f64)));
+        let id: Tensor<4> = self.tensor(values, [1, 2, h, w]);
+        if n == 1 { id } else { id.repeat_dim(0, n) }
+    }
+}
+
+/// All values of a float tensor, read back to the host as `f64` (one synchronisation).
+pub fn to_host<const D: usize>(t: Tensor<D>) -> Vec<f64> {
+    t.into_data()
+        .try_into_vec_as::<f64>()
+        .expect("float tensors convert to f64")
+}
+
+/// [`to_host`] for values that must not be NaN.
+///
+/// # Errors
+///
+/// [`Error::NonFinite`] if a value is NaN (infinities pass: callers decide).
+pub fn host_values<const D: usize>(t: Tensor<D>) -> Result<Vec<f64>> {
+    let values = to_host(t);
+    if values.iter().any(|v| v.is_nan()) {
+        return Err(Error::NonFinite {
+            what: "NaN in a tensor read back to the host".into(),
+        });
+    }
+    Ok(values)
+}

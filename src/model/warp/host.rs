@@ -1,0 +1,598 @@
+//! The cubic B-spline prefilter and warp of SPEC §1 as plain loops over host slices: the
+//! native CPU kernels behind the fused warp op ([`super::op`]), threaded with rayon over
+//! pixels (channels inner) and over lines.
+//!
+//! Every function here is a linear map or the derivative of one, written with its adjoint:
+//!
+//! - [`prefilter`]: `c = P f` per channel (or `Pᵀ g`), the exact interpolating prefilter
+//!   with whole-sample mirror boundary, as a tridiagonal solve along each axis: O(n) per line
+//!   instead of a dense `n × n` matmul.
+//! - [`sample`]: `T = B(φ) c`, the 4 × 4 B-spline evaluation at clamped points.
+//! - [`sample_adjoint`]: `B(φ)ᵀ g`, a scatter-add (the gradient w.r.t. the coefficients).
+//! - [`sample_position_grad`]: `Σ_c g_c ∂T_c/∂p` (the gradient w.r.t. `φ`), zero along an
+//!   axis where the point lies outside the clamp range.
+//!
+//! Layouts are row-major and contiguous: coefficients `[N, C, H, W]`, deformations
+//! `[N, 2, H', W']`, warped maps `[N, C, H', W']`.
+
+use std::ops::{Add, AddAssign, Mul, Sub};
+
+use rayon::prelude::*;
+
+/// The element types the kernels run in.
+pub trait Real:
+    Copy
+    + Default
+    + Send
+    + Sync
+    + 'static
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Mul<Output = Self>
+    + AddAssign
+{
+    /// From float64 (rounded for float32).
+    fn from_f64(v: f64) -> Self;
+    /// To float64 (exact).
+    fn to_f64(self) -> f64;
+}
+
+impl Real for f32 {
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+    fn to_f64(self) -> f64 {
+        f64::from(self)
+    }
+}
+
+impl Real for f64 {
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+    fn to_f64(self) -> f64 {
+        self
+    }
+}
+
+/// Pixels per task: large enough that a task outweighs rayon's overhead, small enough that
+/// both cores (or sixteen) get an even share at 64².
+const PIXELS_PER_TASK: usize = 1024;
+
+/// A raw pointer that tasks writing disjoint indices of one buffer may share.
+#[derive(Clone, Copy)]
+struct Shared<T>(*mut T);
+// SAFETY: every user writes only indices no other task touches (stated at each use).
+unsafe impl<T: Send> Send for Shared<T> {}
+unsafe impl<T: Send> Sync for Shared<T> {}
+
+impl<T> Shared<T> {
+    /// # Safety
+    ///
+    /// `i` is in bounds and no other thread reads or writes it meanwhile.
+    unsafe fn write(self, i: usize, v: T) {
+        unsafe { self.0.add(i).write(v) }
+    }
+
+    /// # Safety
+    ///
+    /// As [`write`](Self::write).
+    unsafe fn get(self, i: usize) -> *mut T {
+        unsafe { self.0.add(i) }
+    }
+}
+
+// ---- the prefilter ------------------------------------------------------------------------
+
+/// The factorisation of one mirrored tridiagonal system of size `n` (SPEC §1: the matrix `A`
+/// with `(A x)(i) = (x(m(i−1)) + 4 x(i) + x(m(i+1))) / 6`, whose inverse is the prefilter), or
+/// of its transpose: the Thomas algorithm's multipliers, computed once per line length.
+#[derive(Clone, Debug)]
+struct Tridiagonal {
+    /// `A[i][i−1]`, `i ≥ 1`.
+    lower: Vec<f64>,
+    /// `1 / (A[i][i] − A[i][i−1] c'[i−1])`.
+    inverse_pivot: Vec<f64>,
+    /// `c'[i] = A[i][i+1] · inverse_pivot[i]`.
+    upper_ratio: Vec<f64>,
+}
+
+impl Tridiagonal {
+    /// `A` (or `Aᵀ`) for lines of `n ≥ 2` samples. Folding the mirror into `A` doubles the
+    /// coupling of the end samples to their neighbours: `A[0][1] = A[n−1][n−2] = 2/6`.
+    fn mirrored(n: usize, transpose: bool) -> Self {
+        assert!(n >= 2, "the prefilter needs at least 2 samples per line");
+        let entry = |i: usize, j: usize| -> f64 {
+            let (i, j) = if transpose { (j, i) } else { (i, j) };
+            if i == j {
+                4.0 / 6.0
+            } else if (i == 0 && j == 1) || (i == n - 1 && j == n - 2) {
+                2.0 / 6.0
+            } else {
+                1.0 / 6.0
+            }
+        };
+        let mut lower = vec![0.0; n];
+        let mut inverse_pivot = vec![0.0; n];
+        let mut upper_ratio = vec![0.0; n];
+        for i in 0..n {
+            lower[i] = if i > 0 { entry(i, i - 1) } else { 0.0 };
+            let previous = if i > 0 { upper_ratio[i - 1] } else { 0.0 };
+            inverse_pivot[i] = 1.0 / (entry(i, i) - lower[i] * previous);
+            upper_ratio[i] = if i + 1 < n {
+                entry(i, i + 1) * inverse_pivot[i]
+            } else {
+                0.0
+            };
+        }
+        Self {
+            lower,
+            inverse_pivot,
+            upper_ratio,
+        }
+    }
+
+    /// The factors in the element type.
+    fn cast<T: Real>(&self) -> (Vec<T>, Vec<T>, Vec<T>) {
+        let cast = |v: &[f64]| v.iter().map(|&x| T::from_f64(x)).collect();
+        (
+            cast(&self.lower),
+            cast(&self.inverse_pivot),
+            cast(&self.upper_ratio),
+        )
+    }
+}
+
+/// The Thomas factors `(lower, inverse pivot, upper ratio)` of the prefilter's system for
+/// lines of `n` samples (or of its transpose): what a device kernel needs to run the same
+/// solve.
+pub fn factors(n: usize, transpose: bool) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    let t = Tridiagonal::mirrored(n, transpose);
+    (t.lower, t.inverse_pivot, t.upper_ratio)
+}
+
+/// Solves the system in place on one contiguous line.
+fn solve_line<T: Real>(line: &mut [T], (lower, pivot, upper): &(Vec<T>, Vec<T>, Vec<T>)) {
+    let n = line.len();
+    line[0] = line[0] * pivot[0];
+    for i in 1..n {
+        line[i] = (line[i] - lower[i] * line[i - 1]) * pivot[i];
+    }
+    for i in (0..n - 1).rev() {
+        line[i] = line[i] - upper[i] * line[i + 1];
+    }
+}
+
+/// Solves the system along the first axis of a `[rows, width]` block of columns `cols` of a
+/// plane, one whole row segment at a time (unit stride, vectorisable).
+///
+/// # Safety
+///
+/// `plane` points to a `rows × width` plane whose columns `cols` no other thread touches.
+unsafe fn solve_columns<T: Real>(
+    plane: Shared<T>,
+    width: usize,
+    rows: usize,
+    cols: std::ops::Range<usize>,
+    (lower, pivot, upper): &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    let row = |i: usize| -> &mut [T] {
+        // SAFETY: the caller owns columns `cols` of every row.
+        unsafe { std::slice::from_raw_parts_mut(plane.get(i * width + cols.start), cols.len()) }
+    };
+    for x in row(0).iter_mut() {
+        *x = *x * pivot[0];
+    }
+    for i in 1..rows {
+        let (l, p) = (lower[i], pivot[i]);
+        let (above, here) = (row(i - 1), row(i));
+        for (x, &a) in here.iter_mut().zip(above.iter()) {
+            *x = (*x - l * a) * p;
+        }
+    }
+    for i in (0..rows - 1).rev() {
+        let u = upper[i];
+        let (here, below) = (row(i), row(i + 1));
+        for (x, &b) in here.iter_mut().zip(below.iter()) {
+            *x = *x - u * b;
+        }
+    }
+}
+
+/// The interpolating prefilter `c = P f` of every `height × width` plane of `data`, in place
+/// (SPEC §1, exact); with `transpose`, its adjoint `Pᵀ g`. `P` is separable: the same 1-D
+/// solve along each axis, in either order.
+pub fn prefilter<T: Real>(data: &mut [T], height: usize, width: usize, transpose: bool) {
+    let plane = height * width;
+    assert_eq!(data.len() % plane, 0, "prefilter: data is not whole planes");
+    let along_w = Tridiagonal::mirrored(width, transpose).cast::<T>();
+    let along_h = Tridiagonal::mirrored(height, transpose).cast::<T>();
+    data.par_chunks_mut(width)
+        .with_min_len((PIXELS_PER_TASK / width).max(1))
+        .for_each(|line| solve_line(line, &along_w));
+    // Columns in blocks that keep a task's rows in cache and give every thread work even for
+    // one plane.
+    let block = 64.min(width);
+    let blocks = width.div_ceil(block);
+    let base = Shared(data.as_mut_ptr());
+    (0..data.len() / plane * blocks)
+        .into_par_iter()
+        .for_each(|task| {
+            let (p, b) = (task / blocks, task % blocks);
+            let cols = b * block..((b + 1) * block).min(width);
+            // SAFETY: task (p, b) owns columns `cols` of plane `p`; tasks differ in one or the
+            // other.
+            unsafe {
+                solve_columns(
+                    Shared(base.get(p * plane)),
+                    width,
+                    height,
+                    cols,
+                    &along_h,
+                )
+            };
+        });
+}
+
+// ---- the evaluation -----------------------------------------------------------------------
+
+/// Where a sample point falls along one axis: the 4 mirrored indices, the B-spline weights
+/// `β(t+1), β(t), β(t−1), β(t−2)` of the fractional part and their derivatives `β'`, and
+/// whether the point lies inside the clamp range (else the clamped function is flat).
+#[derive(Clone, Copy, Debug)]
+struct Axis {
+    index: [usize; 4],
+    weight: [f64; 4],
+    slope: [f64; 4],
+    inside: bool,
+}
+
+/// Whole-sample mirror (SPEC §0) of an index in `[−1, n + 1]`, `n ≥ 4`.
+fn mirror(i: isize, n: usize) -> usize {
+    let last = n as isize - 1;
+    (last - (i.abs() - last).abs()) as usize
+}
+
+impl Axis {
+    fn new(p: f64, n: usize) -> Self {
+        let hi = (n - 1) as f64;
+        // `!(p > hi)` and `!(p < 0)` so that a NaN lands inside and stays NaN in the output.
+        let inside = !(p < 0.0) && !(p > hi);
+        let q = p.clamp(0.0, hi);
+        let floor = if q.is_nan() { 0.0 } else { q.floor() };
+        let t = q - floor;
+        let s = 1.0 - t;
+        let (t2, s2) = (t * t, s * s);
+        let base = floor as isize;
+        Self {
+            index: [-1, 0, 1, 2].map(|a| mirror(base + a, n)),
+            weight: [
+                s2 * s / 6.0,
+                0.5 * t2 * t - t2 + 2.0 / 3.0,
+                0.5 * s2 * s - s2 + 2.0 / 3.0,
+                t2 * t / 6.0,
+            ],
+            slope: [-0.5 * s2, 1.5 * t2 - 2.0 * t, 2.0 * s - 1.5 * s2, 0.5 * t2],
+            inside,
+        }
+    }
+}
+
+/// The shapes of an evaluation: `n` images of `c` channels on a `h × w` coefficient grid,
+/// sampled at `ho × wo` points each.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Dims {
+    /// Batch `N`.
+    pub n: usize,
+    /// Channels `C`.
+    pub c: usize,
+    /// Coefficient rows `H`.
+    pub h: usize,
+    /// Coefficient columns `W`.
+    pub w: usize,
+    /// Sample rows `H'`.
+    pub ho: usize,
+    /// Sample columns `W'`.
+    pub wo: usize,
+}
+
+impl Dims {
+    fn points(&self) -> usize {
+        self.ho * self.wo
+    }
+
+    fn check<T>(&self, coeffs: usize, phi: &[T], samples: usize) {
+        assert!(self.h >= 4 && self.w >= 4, "the spline needs 4 × 4 samples");
+        assert_eq!(coeffs, self.n * self.c * self.h * self.w, "coefficients");
+        assert_eq!(phi.len(), self.n * 2 * self.points(), "deformation");
+        assert_eq!(samples, self.n * self.c * self.points(), "samples");
+    }
+}
+
+/// The two axes of point `p` of image `b`.
+fn point<T: Real>(phi: &[T], d: &Dims, b: usize, p: usize) -> (Axis, Axis) {
+    let at = b * 2 * d.points() + p;
+    (
+        Axis::new(phi[at].to_f64(), d.h),
+        Axis::new(phi[at + d.points()].to_f64(), d.w),
+    )
+}
+
+/// The 16 offsets and weights `β(p₀ − i) β(p₁ − j)` of a point.
+fn stencil<T: Real>(rows: &Axis, cols: &Axis, w: usize) -> ([usize; 16], [T; 16]) {
+    let mut offset = [0; 16];
+    let mut weight = [T::default(); 16];
+    for a in 0..4 {
+        for b in 0..4 {
+            offset[4 * a + b] = rows.index[a] * w + cols.index[b];
+            weight[4 * a + b] = T::from_f64(rows.weight[a] * cols.weight[b]);
+        }
+    }
+    (offset, weight)
+}
+
+/// `T = B(φ) c`: the spline with coefficients `coeffs` at the clamped points `phi`.
+pub fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
+    d.check(coeffs.len(), phi, out.len());
+    let (points, plane) = (d.points(), d.h * d.w);
+    let tasks = points.div_ceil(PIXELS_PER_TASK);
+    let out = Shared(out.as_mut_ptr());
+    (0..d.n * tasks).into_par_iter().for_each(|task| {
+        let (b, chunk) = (task / tasks, task % tasks);
+        for p in chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(points) {
+            let (rows, cols) = point(phi, &d, b, p);
+            let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
+            for ch in 0..d.c {
+                let c = &coeffs[(b * d.c + ch) * plane..(b * d.c + ch + 1) * plane];
+                let mut acc = T::default();
+                for k in 0..16 {
+                    acc += weight[k] * c[offset[k]];
+                }
+                // SAFETY: point p of image b is this task's alone.
+                unsafe { out.write((b * d.c + ch) * points + p, acc) };
+            }
+        }
+    });
+}
+
+/// `Σ_c g_c ∂T_c/∂p` at every point: the gradient of `⟨g, B(φ) c⟩` w.r.t. `φ`, `[N, 2, H', W']`.
+pub fn sample_position_grad<T: Real>(
+    coeffs: &[T],
+    phi: &[T],
+    grad: &[T],
+    out: &mut [T],
+    d: Dims,
+) {
+    d.check(coeffs.len(), phi, grad.len());
+    assert_eq!(out.len(), phi.len(), "position gradient");
+    let (points, plane) = (d.points(), d.h * d.w);
+    let tasks = points.div_ceil(PIXELS_PER_TASK);
+    let out = Shared(out.as_mut_ptr());
+    (0..d.n * tasks).into_par_iter().for_each(|task| {
+        let (b, chunk) = (task / tasks, task % tasks);
+        for p in chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(points) {
+            let (rows, cols) = point(phi, &d, b, p);
+            let mut offset = [0; 16];
+            let (mut d0, mut d1) = ([T::default(); 16], [T::default(); 16]);
+            for a in 0..4 {
+                for k in 0..4 {
+                    offset[4 * a + k] = rows.index[a] * d.w + cols.index[k];
+                    d0[4 * a + k] = T::from_f64(rows.slope[a] * cols.weight[k]);
+                    d1[4 * a + k] = T::from_f64(rows.weight[a] * cols.slope[k]);
+                }
+            }
+            let (mut g0, mut g1) = (T::default(), T::default());
+            for ch in 0..d.c {
+                let c = &coeffs[(b * d.c + ch) * plane..(b * d.c + ch + 1) * plane];
+                let (mut t0, mut t1) = (T::default(), T::default());
+                for k in 0..16 {
+                    let v = c[offset[k]];
+                    t0 += d0[k] * v;
+                    t1 += d1[k] * v;
+                }
+                let g = grad[(b * d.c + ch) * points + p];
+                g0 += g * t0;
+                g1 += g * t1;
+            }
+            let zero = T::default();
+            let at = b * 2 * points + p;
+            // SAFETY: point p of image b is this task's alone.
+            unsafe {
+                out.write(at, if rows.inside { g0 } else { zero });
+                out.write(at + points, if cols.inside { g1 } else { zero });
+            }
+        }
+    });
+}
+
+/// `B(φ)ᵀ g`: the gradient of `⟨g, B(φ) c⟩` w.r.t. the coefficients, `[N, C, H, W]`.
+///
+/// A scatter-add: each point adds into 16 coefficients, and points collide. The planes
+/// `(image, channel)` are independent; when there are fewer of them than twice the threads,
+/// each plane's points are split into parts that add into private copies, summed at the
+/// end, so that 3 RGB channels still keep every core busy.
+pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
+    d.check(out.len(), phi, grad.len());
+    let (points, plane) = (d.points(), d.h * d.w);
+    let planes = d.n * d.c;
+    let threads = rayon::current_num_threads();
+    let parts = if planes >= 2 * threads {
+        1
+    } else {
+        (2 * threads)
+            .div_ceil(planes)
+            .min(points.div_ceil(PIXELS_PER_TASK))
+            .max(1)
+    };
+    let per_part = points.div_ceil(parts);
+    let scatter = |target: &mut [T], pl: usize, part: usize| {
+        let b = pl / d.c;
+        let g = &grad[pl * points..(pl + 1) * points];
+        for p in part * per_part..((part + 1) * per_part).min(points) {
+            let (rows, cols) = point(phi, &d, b, p);
+            let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
+            let v = g[p];
+            for k in 0..16 {
+                target[offset[k]] += weight[k] * v;
+            }
+        }
+    };
+    if parts == 1 {
+        out.par_chunks_mut(plane).enumerate().for_each(|(pl, target)| {
+            target.fill(T::default());
+            scatter(target, pl, 0);
+        });
+        return;
+    }
+    let mut partial = vec![T::default(); planes * parts * plane];
+    partial
+        .par_chunks_mut(plane)
+        .enumerate()
+        .for_each(|(task, target)| scatter(target, task / parts, task % parts));
+    out.par_chunks_mut(plane).enumerate().for_each(|(pl, target)| {
+        let first = &partial[pl * parts * plane..(pl * parts + 1) * plane];
+        target.copy_from_slice(first);
+        for part in 1..parts {
+            let more = &partial[(pl * parts + part) * plane..(pl * parts + part + 1) * plane];
+            for (t, &m) in target.iter_mut().zip(more) {
+                *t += m;
+            }
+        }
+    });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The dense prefilter of `crate::model::stencil`, applied along both axes.
+    fn dense_prefilter(data: &[f64], h: usize, w: usize) -> Vec<f64> {
+        let (ph, pw) = (
+            crate::model::stencil::bspline_prefilter(h),
+            crate::model::stencil::bspline_prefilter(w),
+        );
+        let mut out = vec![0.0; h * w];
+        for i in 0..h {
+            for j in 0..w {
+                let mut acc = 0.0;
+                for k in 0..h {
+                    for l in 0..w {
+                        acc += ph.get(i, k) * pw.get(j, l) * data[k * w + l];
+                    }
+                }
+                out[i * w + j] = acc;
+            }
+        }
+        out
+    }
+
+    fn ramp(n: usize, seed: f64) -> Vec<f64> {
+        (0..n).map(|i| (i as f64 * 0.37 + seed).sin() + 0.1 * i as f64 % 3.0).collect()
+    }
+
+    #[test]
+    fn the_line_solve_is_the_dense_prefilter_and_its_transpose_the_adjoint() {
+        for (h, w) in [(4, 4), (5, 9), (13, 7), (40, 33)] {
+            let f = ramp(2 * h * w, 0.3);
+            let mut c = f.clone();
+            prefilter(&mut c, h, w, false);
+            for p in 0..2 {
+                let want = dense_prefilter(&f[p * h * w..(p + 1) * h * w], h, w);
+                for (a, b) in c[p * h * w..(p + 1) * h * w].iter().zip(&want) {
+                    assert!((a - b).abs() < 1e-12, "{h}x{w}: {a} vs {b}");
+                }
+            }
+            // ⟨P f, g⟩ = ⟨f, Pᵀ g⟩.
+            let g = ramp(2 * h * w, 1.7);
+            let mut pt = g.clone();
+            prefilter(&mut pt, h, w, true);
+            let lhs: f64 = c.iter().zip(&g).map(|(a, b)| a * b).sum();
+            let rhs: f64 = f.iter().zip(&pt).map(|(a, b)| a * b).sum();
+            assert!((lhs - rhs).abs() < 1e-10 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+        }
+    }
+
+    #[test]
+    fn the_adjoint_and_the_position_gradient_match_the_evaluation() {
+        let d = Dims {
+            n: 2,
+            c: 3,
+            h: 9,
+            w: 11,
+            ho: 7,
+            wo: 5,
+        };
+        let coeffs = ramp(d.n * d.c * d.h * d.w, 0.1);
+        // Points inside and outside the clamp range, and on grid lines.
+        let phi: Vec<f64> = (0..d.n * 2 * d.ho * d.wo)
+            .map(|i| {
+                let axis = (i / (d.ho * d.wo)) % 2;
+                let hi = if axis == 0 { 8.0 } else { 10.0 };
+                (i as f64 * 1.618).rem_euclid(hi + 3.0) - 1.5 + if i % 7 == 0 { 0.0 } else { 0.25 }
+            })
+            .collect();
+        let g = ramp(d.n * d.c * d.ho * d.wo, 2.2);
+        let mut t = vec![0.0; g.len()];
+        sample(&coeffs, &phi, &mut t, d);
+        let mut adj = vec![0.0; coeffs.len()];
+        sample_adjoint(&g, &phi, &mut adj, d);
+        let lhs: f64 = t.iter().zip(&g).map(|(a, b)| a * b).sum();
+        let rhs: f64 = coeffs.iter().zip(&adj).map(|(a, b)| a * b).sum();
+        assert!((lhs - rhs).abs() < 1e-10 * lhs.abs(), "{lhs} vs {rhs}");
+
+        let mut grad = vec![0.0; phi.len()];
+        sample_position_grad(&coeffs, &phi, &g, &mut grad, d);
+        let value = |phi: &[f64]| {
+            let mut t = vec![0.0; g.len()];
+            sample(&coeffs, phi, &mut t, d);
+            t.iter().zip(&g).map(|(a, b)| a * b).sum::<f64>()
+        };
+        let h = 1e-6;
+        for i in 0..phi.len() {
+            let frac = phi[i] - phi[i].floor();
+            let axis_hi = if (i / (d.ho * d.wo)) % 2 == 0 { 8.0 } else { 10.0 };
+            if frac.min(1.0 - frac) < 1e-3 || (phi[i] + h > axis_hi && phi[i] - h < axis_hi) {
+                continue; // a kink of the clamp or of a weight's branch
+            }
+            let (mut up, mut down) = (phi.clone(), phi.clone());
+            up[i] += h;
+            down[i] -= h;
+            let fd = (value(&up) - value(&down)) / (2.0 * h);
+            assert!((fd - grad[i]).abs() < 1e-6 * (1.0 + fd.abs()), "φ[{i}]: {fd} vs {}", grad[i]);
+        }
+    }
+
+    #[test]
+    fn the_adjoint_splits_few_planes_without_changing_the_sum() {
+        let d = Dims {
+            n: 1,
+            c: 1,
+            h: 64,
+            w: 64,
+            ho: 64,
+            wo: 64,
+        };
+        let phi: Vec<f64> = (0..2 * 64 * 64)
+            .map(|i| {
+                let (axis, p) = (i / 4096, i % 4096);
+                let v = if axis == 0 { p / 64 } else { p % 64 } as f64;
+                v + 0.3 * ((p as f64) * 0.01).sin()
+            })
+            .collect();
+        let g = ramp(4096, 0.5);
+        let mut out = vec![0.0; 4096];
+        sample_adjoint(&g, &phi, &mut out, d);
+        // Against a plain sequential scatter.
+        let mut want = vec![0.0; 4096];
+        for p in 0..4096 {
+            let (rows, cols) = point(&phi, &d, 0, p);
+            let (offset, weight) = stencil::<f64>(&rows, &cols, 64);
+            for k in 0..16 {
+                want[offset[k]] += weight[k] * g[p];
+            }
+        }
+        for (a, b) in out.iter().zip(&want) {
+            assert!((a - b).abs() < 1e-12);
+        }
+    }
+}

@@ -1,0 +1,344 @@
+//! The cubic B-spline prefilter and evaluation as one custom Burn op each (Burn 0.22's
+//! `#[backend_extension]`): native kernels per backend and a hand-written backward
+//! registered with autodiff, so the solver still takes its gradients from `backward()`.
+//!
+//! - flex: the host kernels of [`super::host`] on the tensors' own buffers.
+//! - wgpu: CubeCL kernels (`super::cube`).
+//! - autodiff: the prefilter's backward is `Pᵀ`; the evaluation's backward is the adjoint
+//!   scatter `B(φ)ᵀ g` for the coefficients and `Σ_c g_c ∂T_c/∂p` for `φ` (SPEC §1's `β'`,
+//!   zero outside the clamp range).
+//!
+//! ndarray is not served: it keeps the composed tensor ops ([`crate::backend::Gather`]).
+//! This module and `super::cube` are the only numerical code that names backends; they
+//! hold what is backend-specific by nature, a kernel per backend.
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::tensor::Tensor;
+
+/// The spline's primitives. Shapes as in [`prefilter`], [`sample`], [`sample_adjoint`] and
+/// [`sample_position_grad`].
+#[backend_extension(Flex: cfg(feature = "flex"), Cube: cfg(feature = "wgpu"), Autodiff)]
+pub trait SplineOps: Backend {
+    /// `P x` (or `Pᵀ x`) of every plane.
+    fn spline_prefilter(x: FloatTensor<Self>, transpose: bool) -> FloatTensor<Self>;
+    /// `B(φ) c`.
+    fn spline_sample(coeffs: FloatTensor<Self>, phi: FloatTensor<Self>) -> FloatTensor<Self>;
+    /// `B(φ)ᵀ g` on a `height × width` coefficient grid.
+    fn spline_sample_adjoint(
+        grad: FloatTensor<Self>,
+        phi: FloatTensor<Self>,
+        height: usize,
+        width: usize,
+    ) -> FloatTensor<Self>;
+    /// `Σ_c g_c ∂(B(φ) c)_c/∂φ`.
+    fn spline_sample_position_grad(
+        coeffs: FloatTensor<Self>,
+        phi: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
+}
+
+/// The interpolating prefilter `P` of SPEC §1 applied to every plane (or its adjoint `Pᵀ`
+/// with `transpose`), exact, O(n) per line.
+///
+/// # Shapes
+/// - `x`: `[N, C, H, W]`, output alike
+pub fn prefilter(x: Tensor<4>, transpose: bool) -> Tensor<4> {
+    Tensor::from_dispatch(Dispatch::spline_prefilter(x.into_dispatch(), transpose))
+}
+
+/// `T = B(φ) c`: the spline with coefficients `coeffs` at the clamped points `phi`.
+///
+/// # Shapes
+/// - `coeffs`: `[N, C, H, W]`; `phi`: `[N, 2, H', W']`; output `[N, C, H', W']`
+pub fn sample(coeffs: Tensor<4>, phi: Tensor<4>) -> Tensor<4> {
+    Tensor::from_dispatch(Dispatch::spline_sample(
+        coeffs.into_dispatch(),
+        phi.into_dispatch(),
+    ))
+}
+
+/// `B(φ)ᵀ g`, the adjoint of [`sample`] in the coefficients (not differentiable itself).
+///
+/// # Shapes
+/// - `grad`: `[N, C, H', W']`; `phi`: `[N, 2, H', W']`; output `[N, C, height, width]`
+pub fn sample_adjoint(grad: Tensor<4>, phi: Tensor<4>, height: usize, width: usize) -> Tensor<4> {
+    Tensor::from_dispatch(Dispatch::spline_sample_adjoint(
+        grad.into_dispatch(),
+        phi.into_dispatch(),
+        height,
+        width,
+    ))
+}
+
+/// `Σ_c g_c ∂T_c/∂φ`, the gradient of `⟨g, sample(coeffs, φ)⟩` w.r.t. `φ` (not
+/// differentiable itself).
+///
+/// # Shapes
+/// - `coeffs`: `[N, C, H, W]`; `phi`: `[N, 2, H', W']`; `grad`: `[N, C, H', W']`; output
+///   `[N, 2, H', W']`
+pub fn sample_position_grad(coeffs: Tensor<4>, phi: Tensor<4>, grad: Tensor<4>) -> Tensor<4> {
+    Tensor::from_dispatch(Dispatch::spline_sample_position_grad(
+        coeffs.into_dispatch(),
+        phi.into_dispatch(),
+        grad.into_dispatch(),
+    ))
+}
+
+/// The shapes of an evaluation, checked.
+fn dims(coeffs: &[usize], phi: &[usize]) -> super::host::Dims {
+    assert!(
+        coeffs.len() == 4 && phi.len() == 4 && phi[1] == 2 && coeffs[0] == phi[0],
+        "spline sample: coefficients {coeffs:?} and deformation {phi:?} do not fit [N, C, H, W] \
+         and [N, 2, H', W']"
+    );
+    super::host::Dims {
+        n: coeffs[0],
+        c: coeffs[1],
+        h: coeffs[2],
+        w: coeffs[3],
+        ho: phi[2],
+        wo: phi[3],
+    }
+}
+
+#[cfg(feature = "flex")]
+mod flex {
+    use burn::backend::Flex;
+    use burn::backend::flex::FlexTensor;
+    use burn::tensor::{DType, TensorData};
+
+    use super::super::host::{self, Dims, Real};
+    use super::{SplineOps, dims};
+
+    /// The tensor's values as contiguous host data.
+    fn data(t: FlexTensor) -> TensorData {
+        t.into_data()
+    }
+
+    fn shape(t: &TensorData) -> Vec<usize> {
+        t.shape().to_vec()
+    }
+
+    /// Runs `f` with the element type of `dtype` (the model computes in float32 and checks
+    /// gradients in float64).
+    macro_rules! typed {
+        ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
+            match $dtype {
+                DType::F32 => $f::<f32>($($arg),*),
+                DType::F64 => $f::<f64>($($arg),*),
+                other => panic!("the spline kernels run in float32 or float64, not {other:?}"),
+            }
+        };
+    }
+
+    fn prefilter_typed<T: Real + burn::tensor::Element>(mut x: TensorData, transpose: bool) -> TensorData {
+        let s = shape(&x);
+        let (h, w) = (s[s.len() - 2], s[s.len() - 1]);
+        host::prefilter(x.as_mut_slice::<T>().expect("dtype checked"), h, w, transpose);
+        x
+    }
+
+    fn sample_typed<T: Real + burn::tensor::Element>(coeffs: TensorData, phi: TensorData, d: Dims) -> TensorData {
+        let mut out = vec![T::default(); d.n * d.c * d.ho * d.wo];
+        host::sample(slice(&coeffs), slice(&phi), &mut out, d);
+        TensorData::new(out, [d.n, d.c, d.ho, d.wo])
+    }
+
+    fn adjoint_typed<T: Real + burn::tensor::Element>(grad: TensorData, phi: TensorData, d: Dims) -> TensorData {
+        let mut out = vec![T::default(); d.n * d.c * d.h * d.w];
+        host::sample_adjoint(slice(&grad), slice(&phi), &mut out, d);
+        TensorData::new(out, [d.n, d.c, d.h, d.w])
+    }
+
+    fn position_typed<T: Real + burn::tensor::Element>(
+        coeffs: TensorData,
+        phi: TensorData,
+        grad: TensorData,
+        d: Dims,
+    ) -> TensorData {
+        let mut out = vec![T::default(); d.n * 2 * d.ho * d.wo];
+        host::sample_position_grad(slice(&coeffs), slice(&phi), slice(&grad), &mut out, d);
+        TensorData::new(out, [d.n, 2, d.ho, d.wo])
+    }
+
+    fn slice<T: burn::tensor::Element>(t: &TensorData) -> &[T] {
+        t.as_slice::<T>()
+            .expect("the spline's tensors share one float dtype")
+    }
+
+    impl SplineOps for Flex {
+        fn spline_prefilter(x: FlexTensor, transpose: bool) -> FlexTensor {
+            let x = data(x);
+            FlexTensor::from_data(typed!(x.dtype(), prefilter_typed(x, transpose)))
+        }
+
+        fn spline_sample(coeffs: FlexTensor, phi: FlexTensor) -> FlexTensor {
+            let (coeffs, phi) = (data(coeffs), data(phi));
+            let d = dims(&shape(&coeffs), &shape(&phi));
+            FlexTensor::from_data(typed!(coeffs.dtype(), sample_typed(coeffs, phi, d)))
+        }
+
+        fn spline_sample_adjoint(
+            grad: FlexTensor,
+            phi: FlexTensor,
+            height: usize,
+            width: usize,
+        ) -> FlexTensor {
+            let (grad, phi) = (data(grad), data(phi));
+            let g = shape(&grad);
+            let d = dims(&[g[0], g[1], height, width], &shape(&phi));
+            FlexTensor::from_data(typed!(grad.dtype(), adjoint_typed(grad, phi, d)))
+        }
+
+        fn spline_sample_position_grad(
+            coeffs: FlexTensor,
+            phi: FlexTensor,
+            grad: FlexTensor,
+        ) -> FlexTensor {
+            let (coeffs, phi, grad) = (data(coeffs), data(phi), data(grad));
+            let d = dims(&shape(&coeffs), &shape(&phi));
+            FlexTensor::from_data(typed!(
+                coeffs.dtype(),
+                position_typed(coeffs, phi, grad, d)
+            ))
+        }
+    }
+}
+
+mod autodiff {
+    use burn::backend::Autodiff;
+    use burn::backend::autodiff::checkpoint::base::Checkpointer;
+    use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+    use burn::backend::autodiff::grads::Gradients;
+    use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+    use burn::backend::tensor::FloatTensor;
+    use burn::backend::TensorMetadata;
+
+    use super::SplineOps;
+
+    #[derive(Debug)]
+    struct Prefilter;
+
+    impl<B: SplineOps> Backward<B, 1> for Prefilter {
+        /// Whether the forward applied `Pᵀ`.
+        type State = bool;
+
+        fn backward(self, ops: Ops<bool, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+            let [parent] = ops.parents;
+            let grad = grads.consume::<B>(&ops.node);
+            if let Some(node) = parent {
+                grads.register::<B>(node.id, B::spline_prefilter(grad, !ops.state));
+            }
+        }
+    }
+
+    #[derive(Debug)]
+    struct Sample;
+
+    impl<B: SplineOps> Backward<B, 2> for Sample {
+        /// The coefficients (kept only when `φ` needs its gradient), `φ`, and the
+        /// coefficient grid's `H × W`.
+        type State = (Option<FloatTensor<B>>, FloatTensor<B>, [usize; 2]);
+
+        fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+            let [coeffs_node, phi_node] = ops.parents;
+            let (coeffs, phi, [h, w]) = ops.state;
+            let grad = grads.consume::<B>(&ops.node);
+            if let Some(node) = phi_node {
+                let coeffs = coeffs.expect("kept when φ is tracked");
+                let g = B::spline_sample_position_grad(coeffs, phi.clone(), grad.clone());
+                grads.register::<B>(node.id, g);
+            }
+            if let Some(node) = coeffs_node {
+                grads.register::<B>(node.id, B::spline_sample_adjoint(grad, phi, h, w));
+            }
+        }
+    }
+
+    /// The backward passes' own kernels are not differentiated again (first-order autodiff
+    /// only): on untracked inputs they run, on tracked ones they refuse.
+    #[derive(Debug)]
+    struct NotDifferentiable;
+
+    impl<B: SplineOps, const N: usize> Backward<B, N> for NotDifferentiable {
+        type State = ();
+
+        fn backward(self, _: Ops<(), N>, _: &mut Gradients, _: &mut Checkpointer) {
+            unreachable!("prepared only for untracked inputs")
+        }
+    }
+
+    fn untracked<B: SplineOps, C: CheckpointStrategy, const N: usize>(
+        what: &str,
+        prep: OpsKind<NotDifferentiable, B, (), C, N>,
+        output: impl FnOnce() -> FloatTensor<B>,
+    ) -> FloatTensor<Autodiff<B, C>> {
+        match prep {
+            OpsKind::UnTracked(prep) => prep.finish(output()),
+            OpsKind::Tracked(_) => panic!("{what} is not differentiable (a backward kernel)"),
+        }
+    }
+
+    impl<B: SplineOps, C: CheckpointStrategy> SplineOps for Autodiff<B, C> {
+        fn spline_prefilter(x: FloatTensor<Self>, transpose: bool) -> FloatTensor<Self> {
+            let (x, node) = x.into_parts();
+            match Prefilter.prepare::<C>([node]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => prep.finish(transpose, B::spline_prefilter(x, transpose)),
+                OpsKind::UnTracked(prep) => prep.finish(B::spline_prefilter(x, transpose)),
+            }
+        }
+
+        fn spline_sample(coeffs: FloatTensor<Self>, phi: FloatTensor<Self>) -> FloatTensor<Self> {
+            let phi_tracked = phi.is_tracked();
+            let (coeffs, coeffs_node) = coeffs.into_parts();
+            let (phi, phi_node) = phi.into_parts();
+            let shape = coeffs.shape();
+            let hw = [shape[2], shape[3]];
+            match Sample
+                .prepare::<C>([coeffs_node, phi_node])
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(prep) => {
+                    let kept = phi_tracked.then(|| coeffs.clone());
+                    let out = B::spline_sample(coeffs, phi.clone());
+                    prep.finish((kept, phi, hw), out)
+                }
+                OpsKind::UnTracked(prep) => prep.finish(B::spline_sample(coeffs, phi)),
+            }
+        }
+
+        fn spline_sample_adjoint(
+            grad: FloatTensor<Self>,
+            phi: FloatTensor<Self>,
+            height: usize,
+            width: usize,
+        ) -> FloatTensor<Self> {
+            let (grad, a) = grad.into_parts();
+            let (phi, b) = phi.into_parts();
+            let prep = NotDifferentiable.prepare::<C>([a, b]).compute_bound().stateful();
+            untracked("the spline's adjoint", prep, || {
+                B::spline_sample_adjoint(grad, phi, height, width)
+            })
+        }
+
+        fn spline_sample_position_grad(
+            coeffs: FloatTensor<Self>,
+            phi: FloatTensor<Self>,
+            grad: FloatTensor<Self>,
+        ) -> FloatTensor<Self> {
+            let (coeffs, a) = coeffs.into_parts();
+            let (phi, b) = phi.into_parts();
+            let (grad, c) = grad.into_parts();
+            let prep = NotDifferentiable
+                .prepare::<C>([a, b, c])
+                .compute_bound()
+                .stateful();
+            untracked("the spline's position gradient", prep, || {
+                B::spline_sample_position_grad(coeffs, phi, grad)
+            })
+        }
+    }
+}

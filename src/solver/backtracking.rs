@@ -1,0 +1,243 @@
+//! The backtracking search on a Lipschitz estimate, shared by the deformation and feature
+//! steps (SPEC §6): start from `shrink · L_stored`, double `L` until a trial is accepted, and
+//! give up after `max_trials`, keeping the `L` the step started from.
+
+use crate::error::{Error, Result};
+
+/// Backtracking on a Lipschitz estimate `L`: each step starts from `shrink · L_stored` and
+/// doubles `L` until the trial is accepted.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Backtracking {
+    /// Factor applied to the stored `L` before the first trial of a step. Default 0.9
+    /// (SPEC §6). Must lie in `(0, 1]`.
+    pub shrink: f64,
+    /// Trials per step before giving up and keeping the current iterate. Default 60 (SPEC §6,
+    /// *Giving up*; in practice a handful of trials suffice).
+    pub max_trials: usize,
+    /// Relative slack of the decrease tests where the energies cannot be accumulated in
+    /// float64 (wgpu): a float32 sum over `67·256²` values has a relative error of about
+    /// `6e-6`, so a step that barely changes the energy could fail by rounding alone, and a
+    /// violation below `slack · |F(x̃)|` counts as satisfied (SPEC §6, "Floating point").
+    /// Backends that accumulate in float64 use no slack. Default 1e-6. Must lie in
+    /// `[0, 1e-3]`.
+    pub float32_slack: f64,
+}
+
+impl Default for Backtracking {
+    fn default() -> Self {
+        Self {
+            shrink: 0.9,
+            max_trials: 60,
+            float32_slack: 1e-6,
+        }
+    }
+}
+
+/// What one trial of a search found.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Trial<T> {
+    /// The trial passed the test; the search ends with it.
+    Accepted(T),
+    /// The decrease test failed.
+    Rejected,
+    /// The candidate is not admissible (a deformation that folds or moves the boundary).
+    Inadmissible,
+}
+
+/// The outcome of a search.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Search<T> {
+    /// The accepted candidate, `None` when the search gave up.
+    pub accepted: Option<T>,
+    /// The `L` to store for the next sweep: the accepted one, or, when the search gave up,
+    /// the stored `L` the step started from (SPEC §6, *Giving up*: a doubled `L·2⁶⁰` would
+    /// freeze the block for hundreds of sweeps).
+    pub lipschitz: f64,
+    /// Trials run (1 = the first was accepted).
+    pub trials: usize,
+    /// Trials whose candidate was inadmissible.
+    pub inadmissible: usize,
+}
+
+impl Backtracking {
+    /// Checks the ranges.
+    ///
+    /// # Errors
+    ///
+    /// [`Error::InvalidParameter`] naming the bad field.
+    pub fn validate(&self) -> Result<()> {
+        if !(self.shrink > 0.0 && self.shrink <= 1.0) {
+            return Err(Error::invalid("shrink", self.shrink, "in (0, 1]"));
+        }
+        if self.max_trials == 0 || self.max_trials > 1000 {
+            return Err(Error::invalid(
+                "max_trials",
+                self.max_trials,
+                "in 1..=1000 (L doubles per trial)",
+            ));
+        }
+        if !(0.0..=1e-3).contains(&self.float32_slack) {
+            return Err(Error::invalid(
+                "float32_slack",
+                self.float32_slack,
+                "in [0, 1e-3]",
+            ));
+        }
+        Ok(())
+    }
+
+    /// The sufficient-decrease test of SPEC §6,
+    /// `F(x_new) ≤ F(x̃) + ⟨∇F(x̃), x_new − x̃⟩ + L/2 ‖x_new − x̃‖² + slack·|F(x̃)|`.
+    /// A non-finite `F(x_new)` never passes.
+    pub fn accepts(
+        &self,
+        new: f64,
+        old: f64,
+        inner: f64,
+        norm2: f64,
+        l: f64,
+        slack: f64,
+    ) -> bool {
+        new.is_finite() && new <= old + inner + 0.5 * l * norm2 + slack * old.abs()
+    }
+
+    /// Runs one search from the stored estimate `stored`: calls `trial(L)` for
+    /// `L = shrink·stored, 2·shrink·stored, …` until it accepts or `max_trials` have run.
+    ///
+    /// # Errors
+    ///
+    /// Whatever `trial` returns.
+    pub fn search<T>(
+        &self,
+        stored: f64,
+        mut trial: impl FnMut(f64) -> Result<Trial<T>>,
+    ) -> Result<Search<T>> {
+        let mut run = SearchRun::new(self, stored);
+        while let Some(l) = run.next() {
+            let outcome = trial(l)?;
+            if let Some(found) = run.record(outcome) {
+                return Ok(found);
+            }
+        }
+        Ok(run.give_up())
+    }
+}
+
+/// One search in progress, driven from outside: [`next`](Self::next) gives the `L` to try,
+/// [`record`](Self::record) takes what the trial found. [`Backtracking::search`] runs one;
+/// a batched step runs several in lockstep, one per block, evaluating all trials of a round
+/// as one tensor operation.
+#[derive(Clone, Debug)]
+pub struct SearchRun {
+    stored: f64,
+    l: f64,
+    trials: usize,
+    inadmissible: usize,
+    max_trials: usize,
+}
+
+impl SearchRun {
+    /// A search starting from the stored estimate `stored`.
+    pub fn new(rule: &Backtracking, stored: f64) -> Self {
+        Self {
+            stored,
+            l: rule.shrink * stored,
+            trials: 0,
+            inadmissible: 0,
+            max_trials: rule.max_trials,
+        }
+    }
+
+    /// The next `L` to try, or `None` when the trials are used up.
+    pub fn next(&self) -> Option<f64> {
+        (self.trials < self.max_trials).then_some(self.l)
+    }
+
+    /// Records the outcome of a trial at [`next`](Self::next)'s `L`; returns the finished
+    /// search if it was accepted.
+    pub fn record<T>(&mut self, outcome: Trial<T>) -> Option<Search<T>> {
+        self.trials += 1;
+        match outcome {
+            Trial::Accepted(candidate) => {
+                return Some(Search {
+                    accepted: Some(candidate),
+                    lipschitz: self.l,
+                    trials: self.trials,
+                    inadmissible: self.inadmissible,
+                });
+            }
+            Trial::Inadmissible => self.inadmissible += 1,
+            Trial::Rejected => {}
+        }
+        self.l *= 2.0;
+        None
+    }
+
+    /// The outcome of a search that ran out of trials: nothing accepted, and the stored
+    /// estimate kept.
+    pub fn give_up<T>(self) -> Search<T> {
+        Search {
+            accepted: None,
+            lipschitz: self.stored,
+            trials: self.trials,
+            inadmissible: self.inadmissible,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn decrease_test_and_slack() {
+        let b = Backtracking::default();
+        assert!(b.accepts(1.0, 1.0, 0.0, 0.0, 1.0, 0.0));
+        assert!(b.accepts(1.0 + 5e-7, 1.0, 0.0, 0.0, 1.0, 1e-6));
+        assert!(!b.accepts(1.0 + 5e-7, 1.0, 0.0, 0.0, 1.0, 0.0));
+        assert!(!b.accepts(1.0 + 2e-6, 1.0, 0.0, 0.0, 1.0, 1e-6));
+        assert!(b.accepts(1.5, 1.0, -0.5, 2.0, 1.0, 0.0)); // 1.5 <= 1 − 0.5 + 1
+        assert!(!b.accepts(f64::INFINITY, 1.0, 0.0, 0.0, 1.0, 0.0));
+        assert!(!b.accepts(f64::NAN, 1.0, 0.0, 0.0, 1.0, 0.0));
+        let bad = Backtracking { shrink: 1.5, ..b };
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("shrink = 1.5")
+        );
+    }
+
+    #[test]
+    fn a_search_doubles_from_the_shrunk_estimate_and_stores_the_accepted_l() {
+        let rule = Backtracking::default();
+        let mut tried = Vec::new();
+        let found = rule
+            .search(10.0, |l| {
+                tried.push(l);
+                Ok(match tried.len() {
+                    1 => Trial::Inadmissible,
+                    2 => Trial::Rejected,
+                    _ => Trial::Accepted(l),
+                })
+            })
+            .unwrap();
+        assert_eq!(tried, vec![9.0, 18.0, 36.0]);
+        assert_eq!(found.accepted, Some(36.0));
+        assert_eq!((found.lipschitz, found.trials, found.inadmissible), (36.0, 3, 1));
+    }
+
+    #[test]
+    fn a_search_that_gives_up_keeps_the_estimate_it_started_from() {
+        let rule = Backtracking {
+            max_trials: 5,
+            ..Backtracking::default()
+        };
+        let found = rule.search(10.0, |_| Ok(Trial::<()>::Rejected)).unwrap();
+        assert_eq!(found.accepted, None);
+        assert_eq!(found.trials, 5);
+        // Not 0.9 · 10 · 2⁵: the next sweep starts again from 0.9 · 10.
+        assert_eq!(found.lipschitz, 10.0);
+    }
+}

@@ -1,0 +1,555 @@
+//! The batched schedule ([`Schedule::Batched`](super::ipalm::Schedule::Batched)): the steps of
+//! SPEC §6 for every `k`, grouped into three blocks per sweep, each one operation on stacked
+//! `[n, C, H, W]` tensors.
+//!
+//! 1. All deformations `φ_1..φ_K`: given the frames they are independent. Each `k` keeps its
+//!    own `L_φ,k`, backtracking search, safeguard and inertia restart; the searches run in
+//!    lockstep (one batched trial and one read-back per round, until every `k` is decided).
+//! 2. All odd frames, then 3. all even frames: given the deformations and the frames of the
+//!    other parity, `f_k` only meets `f_{k±1}`, so the frames of one parity are independent.
+//!
+//! This is iPALM with three blocks instead of `2K − 1`: the same energy and the same
+//! admissibility guarantee, another block order (every `φ_k` sees the frames of the previous
+//! sweep, every `f_k` the new deformations).
+
+use burn::tensor::Tensor;
+
+use crate::error::{Error, Result};
+use crate::model::deformation::{admissible_each, jacobian};
+use crate::model::energy::data::data_term_from_residual;
+use crate::model::energy::regularizer::{regularizer, weighted_density};
+use crate::solver::backtracking::{Search, SearchRun, Trial};
+use crate::solver::ipalm::{
+    DeformationStep, FeatureStep, Ipalm, LevelState, SweepKind, SweepReport, read_scalars,
+};
+use crate::solver::prox::{LinearisedData, linearise};
+
+/// Item `i` of a stacked tensor, `[1, …]`.
+fn item(t: &Tensor<4>, i: usize) -> Tensor<4> {
+    t.clone().narrow(0, i, 1)
+}
+
+/// A stack built item by item from `pick(i)`.
+fn stack(n: usize, pick: impl Fn(usize) -> Tensor<4>) -> Tensor<4> {
+    Tensor::cat((0..n).map(pick).collect(), 0)
+}
+
+/// All deformation steps of a sweep: the stacked form of `DeformationProblem`.
+struct Deformations<'a> {
+    ipalm: &'a Ipalm,
+    /// `a_1..a_K`, `[K, H, W]`.
+    a: Tensor<3>,
+    /// `P f_1..P f_K`, `[K, C, H, W]`.
+    coeffs: Tensor<4>,
+    /// `f_0..f_{K−1}`, `[K, C, H, W]`.
+    before: Tensor<4>,
+    steps: f64,
+}
+
+/// The stacked linearisation around the points `φ̃_1..φ̃_K`.
+struct Linearised {
+    point: Tensor<4>,
+    smooth: Vec<f64>,
+    gradient: Tensor<4>,
+    data: LinearisedData,
+}
+
+impl Linearised {
+    fn candidates(&self, l: &[f64]) -> Tensor<4> {
+        let inverse: Tensor<4> = self.data_grid_tensor(l);
+        self.data
+            .prox_each(self.point.clone() - self.gradient.clone() * inverse, l)
+    }
+
+    /// `1/L_k` as a `[K, 1, 1, 1]` tensor.
+    fn data_grid_tensor(&self, l: &[f64]) -> Tensor<4> {
+        let like = &self.point;
+        Tensor::from_data(
+            burn::tensor::TensorData::new(
+                l.iter().map(|l| 1.0 / l).collect::<Vec<f64>>(),
+                [l.len(), 1, 1, 1],
+            ),
+            (&like.device(), like.dtype()),
+        )
+    }
+}
+
+impl Deformations<'_> {
+    /// `S_k(φ_k)` summed for decisions, `[K]`.
+    fn smooth_decision(&self, phi: Tensor<4>) -> Tensor<1> {
+        let p = self.ipalm.energy.params();
+        let grid = &self.ipalm.grid;
+        grid.decision_sum_each(weighted_density(phi, self.a.clone(), p.lambda, p.mu))
+            .mul_scalar(self.steps / grid.pixels() as f64)
+    }
+
+    /// The safeguard's local energies `e_k(φ_k)`, summed for decisions.
+    fn local_energies(&self, phi: Tensor<4>) -> Vec<f64> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let residual = ipalm.energy.bspline().interpolate(self.coeffs.clone(), phi.clone())
+            - self.before.clone();
+        let data_scale = self.steps
+            / (ipalm.energy.params().delta
+                * 2.0
+                * ipalm.layout.channels() as f64
+                * grid.pixels() as f64);
+        let e = self.smooth_decision(phi)
+            + grid
+                .decision_sum_each(residual.square())
+                .mul_scalar(data_scale);
+        read_scalars(grid, vec![e])
+    }
+
+    fn linearise_at(&self, point: Tensor<4>) -> Result<Linearised> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let p = ipalm.energy.params();
+        let leaf = point.clone().detach().require_grad();
+        // The S_k are independent: the gradient of their sum is each one's gradient.
+        let smooth = regularizer(leaf.clone(), self.a.clone(), p.lambda, p.mu)
+            .sum()
+            .mul_scalar(self.steps);
+        let grads = smooth.backward();
+        let gradient = leaf
+            .grad(&grads)
+            .expect("the regulariser depends on phi")
+            .autodiff();
+        let k = point.dims()[0];
+        let v = read_scalars(
+            grid,
+            vec![
+                self.smooth_decision(point.clone()),
+                grid.decision_sum_each(gradient.clone().square()),
+            ],
+        );
+        if let Some(bad) = (0..k).find(|&i| !(v[i].is_finite() && v[k + i].is_finite())) {
+            return Err(Error::NonFinite {
+                what: format!(
+                    "step k = {}: K·R at the linearisation point is {}, |grad|^2 = {}",
+                    bad + 1,
+                    v[bad],
+                    v[k + bad]
+                ),
+            });
+        }
+        let lin = linearise(
+            ipalm.energy.bspline(),
+            &ipalm.sobel,
+            self.coeffs.clone(),
+            self.before.clone(),
+            point.clone(),
+        );
+        let kappa =
+            self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
+        Ok(Linearised {
+            data: LinearisedData::new(grid, lin, point.clone(), kappa),
+            point,
+            smooth: v[..k].to_vec(),
+            gradient,
+        })
+    }
+
+    /// The searches of the `active` steps in lockstep: every round evaluates one trial `L`
+    /// per undecided step as one batched prox and reads back `min det J`, `S`, `⟨g, d⟩` and
+    /// `‖d‖²` of all of them at once.
+    fn search(
+        &self,
+        lin: &Linearised,
+        stored: &[f64],
+        active: &[bool],
+    ) -> Result<Vec<Option<Search<Tensor<4>>>>> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let bt = ipalm.config.backtracking;
+        let slack = ipalm.slack();
+        let k = stored.len();
+        let mut runs: Vec<Option<SearchRun>> = (0..k)
+            .map(|i| active[i].then(|| SearchRun::new(&bt, stored[i])))
+            .collect();
+        let mut done: Vec<Option<Search<Tensor<4>>>> = (0..k).map(|_| None).collect();
+        loop {
+            let trial: Vec<Option<f64>> = runs
+                .iter()
+                .map(|r| r.as_ref().and_then(SearchRun::next))
+                .collect();
+            if trial.iter().all(Option::is_none) {
+                break;
+            }
+            let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
+            let candidates = lin.candidates(&l);
+            let d = candidates.clone() - lin.point.clone();
+            let [_, _, h, w] = candidates.dims();
+            let v = read_scalars(
+                grid,
+                vec![
+                    jacobian(candidates.clone())
+                        .det()
+                        .reshape([k, h * w])
+                        .min_dim(1)
+                        .reshape([k]),
+                    self.smooth_decision(candidates.clone()),
+                    grid.decision_sum_each(lin.gradient.clone() * d.clone()),
+                    grid.decision_sum_each(d.square()),
+                ],
+            );
+            for i in 0..k {
+                let (Some(l), Some(run)) = (trial[i], runs[i].as_mut()) else {
+                    continue;
+                };
+                let outcome = if !(v[i] > 0.0) {
+                    Trial::Inadmissible
+                } else if bt.accepts(v[k + i], lin.smooth[i], v[2 * k + i], v[3 * k + i], l, slack)
+                {
+                    Trial::Accepted(item(&candidates, i))
+                } else {
+                    Trial::Rejected
+                };
+                if let Some(found) = run.record(outcome) {
+                    done[i] = Some(found);
+                    runs[i] = None;
+                }
+            }
+        }
+        for (i, run) in runs.into_iter().enumerate() {
+            if let Some(run) = run {
+                done[i] = Some(run.give_up());
+            }
+        }
+        Ok(done)
+    }
+}
+
+/// Where one deformation step stands during the batched safeguard.
+struct Pending {
+    step: DeformationStep,
+    /// The accepted `φ_new`, `None` once dropped.
+    candidate: Option<Tensor<4>>,
+    /// The `L` the backtracking accepted.
+    accepted: f64,
+    /// The `L` of the safeguard's doublings.
+    doubled: f64,
+    /// Whether the candidate comes from the restarted linearisation.
+    restarted: bool,
+}
+
+impl Ipalm {
+    /// One sweep of the batched schedule.
+    pub(super) fn sweep_batched(
+        &self,
+        state: &mut LevelState,
+        kind: SweepKind,
+    ) -> Result<SweepReport> {
+        let k = state.steps();
+        let mut report = SweepReport {
+            anisotropy: Vec::new(),
+            deformation: Vec::new(),
+            features: Vec::new(),
+        };
+        if kind == SweepKind::Joint {
+            let a = self.anisotropies(state);
+            let (phi_new, steps) = self.deformation_steps(state, a.clone())?;
+            for (i, (phi, step)) in phi_new.into_iter().zip(steps).enumerate() {
+                state.l_phi[i] = step.lipschitz;
+                state.phi_prev[i] = std::mem::replace(&mut state.phi[i], phi);
+                report.deformation.push(step);
+            }
+            report.anisotropy = (0..k).map(|i| a.clone().narrow(0, i, 1)).collect();
+        }
+        let mut features: Vec<Option<FeatureStep>> = vec![None; k.saturating_sub(1)];
+        for parity in [1, 0] {
+            let ks: Vec<usize> = (1..k).filter(|j| j % 2 == parity).collect();
+            if ks.is_empty() {
+                continue;
+            }
+            let (frames, steps) = self.feature_steps(state, &ks)?;
+            for ((&j, f), step) in ks.iter().zip(frames).zip(steps) {
+                state.l_f[j - 1] = step.lipschitz.clone();
+                state.f_prev[j] = std::mem::replace(&mut state.f[j], f);
+                features[j - 1] = Some(step);
+            }
+        }
+        report.features = features
+            .into_iter()
+            .map(|s| s.expect("every k < K has a feature step"))
+            .collect();
+        Ok(report)
+    }
+
+    /// SPEC §6 step 2 for every `k` at once.
+    fn deformation_steps(
+        &self,
+        state: &LevelState,
+        a: Tensor<3>,
+    ) -> Result<(Vec<Tensor<4>>, Vec<DeformationStep>)> {
+        let k = state.steps();
+        let bspline = self.energy.bspline();
+        let problem = Deformations {
+            ipalm: self,
+            a,
+            coeffs: bspline.coefficients(Tensor::cat(state.f[1..=k].to_vec(), 0)),
+            before: Tensor::cat(state.f[..k].to_vec(), 0),
+            steps: k as f64,
+        };
+        let phi = state.deformations();
+        let stored = state.l_phi.clone();
+        let (point, extrapolated) = if self.config.beta > 0.0 {
+            let prev = Tensor::cat(state.phi_prev.clone(), 0);
+            let e = phi.clone() + (phi.clone() - prev).mul_scalar(self.config.beta);
+            let ok = admissible_each(&self.grid, e.clone());
+            let point = stack(k, |i| if ok[i] { item(&e, i) } else { item(&phi, i) });
+            (point, ok)
+        } else {
+            (phi.clone(), vec![false; k])
+        };
+        let lin = problem.linearise_at(point)?;
+        let found = problem.search(&lin, &stored, &vec![true; k])?;
+        let mut pending: Vec<Pending> = found
+            .into_iter()
+            .map(|search| {
+                let search = search.expect("every step searched");
+                let accepted = search.lipschitz;
+                Pending {
+                    step: DeformationStep {
+                        lipschitz: accepted,
+                        trials: search.trials,
+                        inadmissible_trials: search.inadmissible,
+                        restarted: false,
+                        safeguard_doublings: 0,
+                        dropped: search.accepted.is_none(),
+                    },
+                    candidate: search.accepted,
+                    accepted,
+                    doubled: accepted,
+                    restarted: false,
+                }
+            })
+            .collect();
+
+        if self.config.safeguard {
+            let current = problem.local_energies(phi.clone());
+            let tolerance: Vec<f64> = current.iter().map(|e| self.slack() * e.abs()).collect();
+            let rises = |i: usize, e: f64| !(e <= current[i] + tolerance[i]);
+            let candidates = |pending: &[Pending]| {
+                stack(k, |i| {
+                    pending[i]
+                        .candidate
+                        .clone()
+                        .unwrap_or_else(|| item(&phi, i))
+                })
+            };
+            let mut energy = problem.local_energies(candidates(&pending));
+            // Restart the inertia of every k whose extrapolated step raised e.
+            let restart: Vec<bool> = (0..k)
+                .map(|i| pending[i].candidate.is_some() && rises(i, energy[i]) && extrapolated[i])
+                .collect();
+            let mut restarted_lin = None;
+            if restart.iter().any(|&r| r) {
+                let lin = problem.linearise_at(phi.clone())?;
+                let found = problem.search(&lin, &stored, &restart)?;
+                for (i, search) in found.into_iter().enumerate() {
+                    let Some(search) = search else { continue };
+                    let p = &mut pending[i];
+                    p.step.restarted = true;
+                    p.restarted = true;
+                    p.step.trials += search.trials;
+                    p.step.inadmissible_trials += search.inadmissible;
+                    p.candidate = search.accepted;
+                    p.accepted = search.lipschitz;
+                    p.doubled = search.lipschitz;
+                }
+                energy = problem.local_energies(candidates(&pending));
+                restarted_lin = Some(lin);
+            }
+            // Double L while e still rises, each k on its own linearisation.
+            let mut doubling: Vec<bool> = (0..k)
+                .map(|i| pending[i].candidate.is_some() && rises(i, energy[i]))
+                .collect();
+            while doubling.iter().any(|&d| d) {
+                for (i, p) in pending.iter_mut().enumerate() {
+                    if !doubling[i] {
+                        continue;
+                    }
+                    if p.step.safeguard_doublings == self.config.safeguard_max {
+                        p.candidate = None;
+                        doubling[i] = false;
+                        continue;
+                    }
+                    p.step.safeguard_doublings += 1;
+                    p.doubled *= 2.0;
+                }
+                if !doubling.iter().any(|&d| d) {
+                    break;
+                }
+                let l: Vec<f64> = pending.iter().map(|p| p.doubled).collect();
+                let from_point = lin.candidates(&l);
+                let from_restart = restarted_lin.as_ref().map(|r| r.candidates(&l));
+                for (i, p) in pending.iter_mut().enumerate() {
+                    if doubling[i] {
+                        p.candidate = Some(match (&from_restart, p.restarted) {
+                            (Some(r), true) => item(r, i),
+                            _ => item(&from_point, i),
+                        });
+                    }
+                }
+                energy = problem.local_energies(candidates(&pending));
+                for i in 0..k {
+                    doubling[i] = doubling[i] && rises(i, energy[i]);
+                }
+            }
+        }
+
+        let mut frames = Vec::with_capacity(k);
+        let mut steps = Vec::with_capacity(k);
+        for (i, mut p) in pending.into_iter().enumerate() {
+            match p.candidate {
+                Some(candidate) => {
+                    p.step.lipschitz = p.accepted;
+                    frames.push(candidate);
+                }
+                None => {
+                    // SPEC §6, *Giving up*: keep φ_k and the L the step started from.
+                    p.step.dropped = true;
+                    p.step.lipschitz = stored[i];
+                    frames.push(item(&phi, i));
+                }
+            }
+            steps.push(p.step);
+        }
+        Ok((frames, steps))
+    }
+
+    /// SPEC §6 step 3 for the frames `ks` (all of one parity) at once, block by block.
+    fn feature_steps(
+        &self,
+        state: &LevelState,
+        ks: &[usize],
+    ) -> Result<(Vec<Tensor<4>>, Vec<FeatureStep>)> {
+        let n = ks.len();
+        let grid = &self.grid;
+        let bspline = self.energy.bspline();
+        let bt = self.config.backtracking;
+        let c_tot = self.layout.channels();
+        let delta = self.energy.params().delta;
+        let steps = state.steps() as f64;
+        let take = |v: &[Tensor<4>], offset: isize| {
+            Tensor::cat(
+                ks.iter()
+                    .map(|&j| v[(j as isize + offset) as usize].clone())
+                    .collect(),
+                0,
+            )
+        };
+        let f_k = take(&state.f, 0);
+        let f_tilde = if self.config.beta > 0.0 {
+            f_k.clone() + (f_k.clone() - take(&state.f_prev, 0)).mul_scalar(self.config.beta)
+        } else {
+            f_k.clone()
+        };
+        // φ_k is stored at k − 1, φ_{k+1} at k.
+        let sampler = bspline.sampler(take(&state.phi, -1));
+        let next_warped = bspline.interpolate(
+            bspline.coefficients(take(&state.f, 1)),
+            take(&state.phi, 0),
+        );
+        let before = take(&state.f, -1);
+        let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
+        let per_item = |values: Vec<f64>| -> Tensor<4> { grid.tensor(values, [n, 1, 1, 1]) };
+
+        let mut blocks: Vec<Tensor<4>> = Vec::new();
+        let mut records: Vec<FeatureStep> = (0..n)
+            .map(|_| FeatureStep {
+                lipschitz: Vec::new(),
+                trials: Vec::new(),
+                dropped: Vec::new(),
+            })
+            .collect();
+        for (b, block) in self.layout.blocks().iter().enumerate() {
+            let (start, len) = (block.channels.start, block.channels.len());
+            let prev = before.clone().narrow(1, start, len);
+            let next = next_warped.clone().narrow(1, start, len);
+            let residuals = |x: Tensor<4>| {
+                let warped = sampler.sample(bspline.coefficients(x.clone()));
+                (warped - prev.clone(), next.clone() - x)
+            };
+            let decision = |(moved, fixed): &(Tensor<4>, Tensor<4>)| {
+                (grid.decision_sum_each(moved.clone().square())
+                    + grid.decision_sum_each(fixed.clone().square()))
+                .mul_scalar(scale)
+            };
+            let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
+            let leaf = x_tilde.clone().require_grad();
+            let r = residuals(leaf.clone());
+            // The Q_k are independent: the gradient of their sum is each one's gradient.
+            let q = (data_term_from_residual(r.0.clone(), c_tot)
+                + data_term_from_residual(r.1.clone(), c_tot))
+            .sum()
+            .mul_scalar(steps / delta);
+            let grads = q.backward();
+            let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
+            let v = read_scalars(
+                grid,
+                vec![decision(&r), grid.decision_sum_each(grad.clone().square())],
+            );
+            let (q_tilde, norm2) = (&v[..n], &v[n..]);
+            if let Some(i) = (0..n).find(|&i| !(q_tilde[i].is_finite() && norm2[i].is_finite())) {
+                return Err(Error::NonFinite {
+                    what: format!(
+                        "feature step k = {}, block {b}: Q = {}, |grad Q|^2 = {}",
+                        ks[i], q_tilde[i], norm2[i]
+                    ),
+                });
+            }
+            let slack = self.slack();
+            let mut runs: Vec<Option<SearchRun>> = ks
+                .iter()
+                .map(|&j| Some(SearchRun::new(&bt, state.l_f[j - 1][b])))
+                .collect();
+            let mut found: Vec<Option<Search<Tensor<4>>>> = (0..n).map(|_| None).collect();
+            loop {
+                let trial: Vec<Option<f64>> = runs
+                    .iter()
+                    .map(|r| r.as_ref().and_then(SearchRun::next))
+                    .collect();
+                if trial.iter().all(Option::is_none) {
+                    break;
+                }
+                let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
+                let inverse = per_item(l.iter().map(|l| 1.0 / l).collect());
+                let candidates = x_tilde.clone() - grad.clone() * inverse;
+                let q_new = read_scalars(grid, vec![decision(&residuals(candidates.clone()))]);
+                for i in 0..n {
+                    let (Some(l), Some(run)) = (trial[i], runs[i].as_mut()) else {
+                        continue;
+                    };
+                    let (g2, q0) = (norm2[i], q_tilde[i]);
+                    // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
+                    let outcome = if bt.accepts(q_new[i], q0, -g2 / l, g2 / (l * l), l, slack) {
+                        Trial::Accepted(item(&candidates, i))
+                    } else {
+                        Trial::Rejected
+                    };
+                    if let Some(done) = run.record(outcome) {
+                        found[i] = Some(done);
+                        runs[i] = None;
+                    }
+                }
+            }
+            let current = f_k.clone().narrow(1, start, len);
+            let mut values = Vec::with_capacity(n);
+            for (i, run) in runs.into_iter().enumerate() {
+                let search = match run {
+                    Some(run) => run.give_up(),
+                    None => found[i].take().expect("decided"),
+                };
+                records[i].dropped.push(search.accepted.is_none());
+                records[i].lipschitz.push(search.lipschitz);
+                records[i].trials.push(search.trials);
+                values.push(search.accepted.unwrap_or_else(|| item(&current, i)));
+            }
+            blocks.push(Tensor::cat(values, 0));
+        }
+        let frames = Tensor::cat(blocks, 1);
+        Ok(((0..n).map(|i| item(&frames, i)).collect(), records))
+    }
+}

@@ -1,0 +1,761 @@
+//! One level of the iPALM solver (SPEC §6, the paper's Algorithm 1).
+//!
+//! [`Ipalm`] holds the level's operators and the configuration and performs one sweep
+//! ([`Ipalm::sweep`]) on a [`LevelState`]; the loop over sweeps, termination, progress and
+//! interruption belong to the caller (the multilevel driver), as in argmin's split between
+//! solver and executor.
+//!
+//! Every accept/reject decision compares scalars summed by [`Grid::decision_sum`]: in
+//! float64 on the CPU backends (no slack), in float32 with the relative slack
+//! [`Backtracking::float32_slack`] on wgpu. Each trial reads its scalars back in one
+//! transfer.
+
+use burn::tensor::Tensor;
+
+use crate::model::deformation::{is_admissible, jacobian};
+use crate::model::energy::data::data_term_from_residual;
+use crate::model::energy::path::{EnergyValue, PathEnergy};
+use crate::model::energy::regularizer::{regularizer, weighted_density};
+use crate::error::{Error, Result};
+use crate::model::grid::{Accumulation, Grid};
+use crate::model::grid::to_host;
+use crate::model::layout::FeatureLayout;
+use crate::solver::backtracking::{Backtracking, Search, Trial};
+use crate::solver::prox::{LinearisedData, linearise};
+use crate::model::params::EnergyParams;
+use crate::model::sobel::Sobel;
+use crate::model::warp::Sampler;
+
+/// The solver's settings beyond the energy (SPEC §6, §9).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IpalmConfig {
+    /// Inertial extrapolation `β`, in `[0, 1)`. Default `1/√2`.
+    pub beta: f64,
+    /// The safeguard of SPEC §6: after a deformation step is accepted, compare the true
+    /// local energy with its value at the current `φ_k`; on a rise restart the inertia of
+    /// that `k`, then double `L` while it still rises. Default on; off is the paper's plain
+    /// algorithm (and the golden sweeps).
+    pub safeguard: bool,
+    /// Doublings of the safeguard before the step is dropped (`φ_k` kept). Default 30.
+    pub safeguard_max: usize,
+    /// The backtracking rule of both steps.
+    pub backtracking: Backtracking,
+    /// The order of the blocks in a sweep. Default [`Schedule::Sequential`].
+    pub schedule: Schedule,
+}
+
+impl Default for IpalmConfig {
+    fn default() -> Self {
+        Self {
+            beta: std::f64::consts::FRAC_1_SQRT_2,
+            safeguard: true,
+            safeguard_max: 30,
+            backtracking: Backtracking::default(),
+            schedule: Schedule::Sequential,
+        }
+    }
+}
+
+/// The order in which a sweep updates the blocks. Both are iPALM with the same energy, the
+/// same steps (SPEC §6 step 2 and 3 for each `k`) and the same admissibility guarantee; they
+/// differ in which values each block sees.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum Schedule {
+    /// The paper's Algorithm 1: `k = 1..K` in order, `φ_k` then `f_k`, each step seeing the
+    /// already-updated blocks before it: `2K − 1` blocks per sweep.
+    Sequential,
+    /// Three blocks per sweep: every `φ_k` at once (given the frames they are independent),
+    /// then every odd `f_k`, then every even `f_k` (given the deformations and the other
+    /// parity, those are independent too). Each block is one operation on stacked
+    /// `[n, C, H, W]` tensors, with a Lipschitz estimate, backtracking and safeguard per `k`.
+    Batched,
+}
+
+impl IpalmConfig {
+    /// Checks the ranges.
+    ///
+    /// # Errors
+    ///
+    /// [`Error::InvalidParameter`] naming the bad field.
+    pub fn validate(&self) -> Result<()> {
+        if !(0.0..1.0).contains(&self.beta) {
+            return Err(Error::invalid("beta", self.beta, "in [0, 1)"));
+        }
+        if self.safeguard_max > 1000 {
+            return Err(Error::invalid(
+                "safeguard_max",
+                self.safeguard_max,
+                "in 0..=1000 (L doubles per step)",
+            ));
+        }
+        self.backtracking.validate()
+    }
+}
+
+/// The iterate of one level: frames, deformations, their values of the previous sweep, and
+/// the stored Lipschitz estimates.
+#[derive(Clone, Debug)]
+pub struct LevelState {
+    /// `f_0..f_K`, each `[1, C_tot, H, W]`; `f_0` and `f_K` never change.
+    pub f: Vec<Tensor<4>>,
+    /// `f_k` of the previous sweep.
+    pub f_prev: Vec<Tensor<4>>,
+    /// `φ_1..φ_K` (index `k − 1`), each `[1, 2, H, W]`.
+    pub phi: Vec<Tensor<4>>,
+    /// `φ_k` of the previous sweep.
+    pub phi_prev: Vec<Tensor<4>>,
+    /// Stored `L_φ,k`, `k = 1..K`.
+    pub l_phi: Vec<f64>,
+    /// Stored `L_f,k` per block, `k = 1..K−1`.
+    pub l_f: Vec<Vec<f64>>,
+}
+
+impl LevelState {
+    /// A state with `prev = current`.
+    ///
+    /// # Errors
+    ///
+    /// If the counts do not fit (`K + 1` frames, `K` deformations, `K` and `K − 1` estimates).
+    pub fn new(
+        f: Vec<Tensor<4>>,
+        phi: Vec<Tensor<4>>,
+        l_phi: Vec<f64>,
+        l_f: Vec<Vec<f64>>,
+    ) -> Result<Self> {
+        let k = phi.len();
+        if k == 0 || f.len() != k + 1 || l_phi.len() != k || l_f.len() != k - 1 {
+            return Err(Error::Shape {
+                op: "LevelState::new",
+                detail: format!(
+                    "{} frames, {} deformations, {} L_phi, {} L_f: expected K+1, K, K, K-1",
+                    f.len(),
+                    k,
+                    l_phi.len(),
+                    l_f.len()
+                ),
+            });
+        }
+        Ok(Self {
+            f_prev: f.clone(),
+            phi_prev: phi.clone(),
+            f,
+            phi,
+            l_phi,
+            l_f,
+        })
+    }
+
+    /// The initial state of SPEC §6/§7: `φ_k = Id`, `f_k = (1 − k/K) f_A + (k/K) f_B`, prev
+    /// = current, and the initial Lipschitz estimates of [`initial_lipschitz`].
+    ///
+    /// # Shapes
+    /// - `f_a`, `f_b`: `[1, C_tot, H, W]`
+    pub fn initial(
+        grid: &Grid,
+        layout: &FeatureLayout,
+        f_a: Tensor<4>,
+        f_b: Tensor<4>,
+        k: usize,
+        delta: f64,
+    ) -> Result<Self> {
+        let f = (0..=k)
+            .map(|step| {
+                let t = step as f64 / k as f64;
+                match step {
+                    0 => f_a.clone(),
+                    s if s == k => f_b.clone(),
+                    _ => f_a.clone().mul_scalar(1.0 - t) + f_b.clone().mul_scalar(t),
+                }
+            })
+            .collect();
+        let phi = vec![grid.identity(1); k];
+        let (l_phi, l_f) = initial_lipschitz(grid, layout, k, delta);
+        Self::new(f, phi, l_phi, l_f)
+    }
+
+    /// `K`.
+    pub fn steps(&self) -> usize {
+        self.phi.len()
+    }
+
+    /// `f_0..f_K` as one `[K+1, C_tot, H, W]` tensor.
+    pub fn frames(&self) -> Tensor<4> {
+        Tensor::cat(self.f.clone(), 0)
+    }
+
+    /// `φ_1..φ_K` as one `[K, 2, H, W]` tensor.
+    pub fn deformations(&self) -> Tensor<4> {
+        Tensor::cat(self.phi.clone(), 0)
+    }
+}
+
+/// The initial estimates of SPEC §6 on a level: `L_φ,k = 1/(H·W)` and, for every feature
+/// block, `L_f,k = 2K/(δ·C_tot·H·W)`, the curvature of `(K/δ)(D_k + D_{k+1})` in `f_k` with
+/// `‖T‖ ≈ 1`, whatever the block's scale.
+pub fn initial_lipschitz(
+    grid: &Grid,
+    layout: &FeatureLayout,
+    k: usize,
+    delta: f64,
+) -> (Vec<f64>, Vec<Vec<f64>>) {
+    let pixels = grid.pixels() as f64;
+    let l_f = 2.0 * k as f64 / (delta * layout.channels() as f64 * pixels);
+    (
+        vec![1.0 / pixels; k],
+        vec![vec![l_f; layout.blocks().len()]; k.saturating_sub(1)],
+    )
+}
+
+/// Which steps a sweep runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SweepKind {
+    /// Anisotropy, deformation and feature steps for every `k` (SPEC §6).
+    Joint,
+    /// Only the feature steps, deformations fixed (the deep model's `J_pre` sweeps, SPEC §7).
+    FeaturesOnly,
+}
+
+/// What the deformation step of one `k` did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DeformationStep {
+    /// The `L_φ,k` stored for the next sweep: the one the backtracking accepted (not the
+    /// safeguard's doubled value), or the one the step started from if it was dropped.
+    pub lipschitz: f64,
+    /// Trial values of `L` of the backtracking (1 = the first trial was accepted), counting
+    /// both searches when the inertia was restarted.
+    pub trials: usize,
+    /// How many of those trials gave an inadmissible `φ_new`.
+    pub inadmissible_trials: usize,
+    /// Whether the safeguard restarted the inertia (SPEC §6: `φ̃ = φ_k`).
+    pub restarted: bool,
+    /// Doublings of `L` by the safeguard after acceptance.
+    pub safeguard_doublings: usize,
+    /// Whether the step was dropped (`φ_k` kept): backtracking or safeguard exhausted.
+    pub dropped: bool,
+}
+
+/// What the feature step of one `k` did, per block.
+#[derive(Clone, Debug, PartialEq)]
+pub struct FeatureStep {
+    /// The `L_f,k` stored for each block: accepted, or the starting one if it gave up.
+    pub lipschitz: Vec<f64>,
+    /// Trials of each block until acceptance.
+    pub trials: Vec<usize>,
+    /// Whether each block's search gave up (its values kept).
+    pub dropped: Vec<bool>,
+}
+
+/// The record of one sweep.
+#[derive(Clone, Debug)]
+pub struct SweepReport {
+    /// The anisotropies `a_1..a_K` of step 1, `[1, H, W]` each (empty for a features-only
+    /// sweep).
+    pub anisotropy: Vec<Tensor<3>>,
+    /// Deformation steps, `k = 1..K` (empty for a features-only sweep).
+    pub deformation: Vec<DeformationStep>,
+    /// Feature steps, `k = 1..K−1`.
+    pub features: Vec<FeatureStep>,
+}
+
+impl SweepReport {
+    /// Deformation steps whose inertia the safeguard restarted.
+    pub fn restarts(&self) -> usize {
+        self.deformation.iter().filter(|s| s.restarted).count()
+    }
+
+    /// Deformation steps dropped (`φ_k` kept).
+    pub fn deformation_drops(&self) -> usize {
+        self.deformation.iter().filter(|s| s.dropped).count()
+    }
+
+    /// Feature blocks whose search gave up.
+    pub fn feature_drops(&self) -> usize {
+        self.features
+            .iter()
+            .map(|s| s.dropped.iter().filter(|&&d| d).count())
+            .sum()
+    }
+}
+
+/// The iPALM solver on one level.
+#[derive(Clone, Debug)]
+pub struct Ipalm {
+    pub(super) grid: Grid,
+    pub(super) energy: PathEnergy,
+    pub(super) layout: FeatureLayout,
+    pub(super) sobel: Sobel,
+    pub(super) config: IpalmConfig,
+}
+
+/// The pieces of `K·R[·, a_k]` and `e(·)` of one deformation step (SPEC §6 step 2).
+struct DeformationProblem<'a> {
+    ipalm: &'a Ipalm,
+    /// `a_k`, `[1, H, W]`.
+    a: Tensor<3>,
+    /// `P f_k`, `[1, C, H, W]`.
+    coeffs_k: Tensor<4>,
+    /// `f_{k−1}`, `[1, C, H, W]`.
+    f_km1: Tensor<4>,
+    /// `K`.
+    steps: f64,
+}
+
+/// A deformation step linearised around a point `φ̃` (the extrapolated point, or `φ_k` after
+/// a restart): `S(φ̃)` summed for decisions, `g = ∇S(φ̃)`, and the prox of the linearised
+/// data term.
+struct Linearised {
+    point: Tensor<4>,
+    smooth: f64,
+    gradient: Tensor<4>,
+    data: LinearisedData,
+}
+
+impl Linearised {
+    /// `φ_new` for the trial `L`: the prox at `y = φ̃ − g/L`.
+    fn candidate(&self, l: f64) -> Tensor<4> {
+        self.data.prox(
+            self.point.clone() - self.gradient.clone().mul_scalar(1.0 / l),
+            l,
+        )
+    }
+}
+
+impl DeformationProblem<'_> {
+    /// `S(φ) = K·R[φ, a_k]`, differentiable (float32 sum).
+    fn smooth(&self, phi: Tensor<4>) -> Tensor<1> {
+        let p = self.ipalm.energy.params();
+        regularizer(phi, self.a.clone(), p.lambda, p.mu).mul_scalar(self.steps)
+    }
+
+    /// `S(φ)` summed for decisions.
+    fn smooth_decision(&self, phi: Tensor<4>) -> Tensor<1> {
+        let p = self.ipalm.energy.params();
+        let grid = &self.ipalm.grid;
+        grid.decision_sum(weighted_density(phi, self.a.clone(), p.lambda, p.mu))
+            .mul_scalar(self.steps / grid.pixels() as f64)
+    }
+
+    /// The true local energy `e(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` summed for
+    /// decisions (the safeguard's).
+    fn local_energy(&self, phi: Tensor<4>) -> f64 {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let bspline = ipalm.energy.bspline();
+        let residual = bspline.interpolate(self.coeffs_k.clone(), phi.clone()) - self.f_km1.clone();
+        let data_scale = self.steps
+            / (ipalm.energy.params().delta
+                * 2.0
+                * ipalm.layout.channels() as f64
+                * grid.pixels() as f64);
+        let e = self.smooth_decision(phi)
+            + grid
+                .decision_sum(residual.square())
+                .mul_scalar(data_scale);
+        to_host(e)[0]
+    }
+
+    /// Linearises the step around `point` (SPEC §6 step 2).
+    ///
+    /// # Errors
+    ///
+    /// [`Error::NonFinite`] if `S(φ̃)` or its gradient is not finite.
+    fn linearise_at(&self, point: Tensor<4>, k: usize) -> Result<Linearised> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let leaf = point.clone().detach().require_grad();
+        let grads = self.smooth(leaf.clone()).backward();
+        let gradient = leaf
+            .grad(&grads)
+            .expect("the regulariser depends on phi")
+            .autodiff();
+        let v = read_scalars(
+            grid,
+            vec![
+                self.smooth_decision(point.clone()),
+                grid.decision_sum(gradient.clone().square()),
+            ],
+        );
+        if !(v[0].is_finite() && v[1].is_finite()) {
+            return Err(Error::NonFinite {
+                what: format!(
+                    "step k = {k}: K·R at the linearisation point is {}, |grad|^2 = {}",
+                    v[0], v[1]
+                ),
+            });
+        }
+        let lin = linearise(
+            ipalm.energy.bspline(),
+            &ipalm.sobel,
+            self.coeffs_k.clone(),
+            self.f_km1.clone(),
+            point.clone(),
+        );
+        let p = ipalm.energy.params();
+        let kappa =
+            self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
+        let data = LinearisedData::new(grid, lin, point.clone(), kappa);
+        Ok(Linearised {
+            point,
+            smooth: v[0],
+            gradient,
+            data,
+        })
+    }
+
+    /// The backtracking search of SPEC §6 step 2 around `lin`, from the stored `L`: one
+    /// read-back per trial (`min det J`, `S(φ_new)`, `⟨g, d⟩`, `‖d‖²`).
+    fn search(&self, lin: &Linearised, stored: f64) -> Result<Search<Tensor<4>>> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let bt = ipalm.config.backtracking;
+        let slack = ipalm.slack();
+        bt.search(stored, |l| {
+            let candidate = lin.candidate(l);
+            let d = candidate.clone() - lin.point.clone();
+            let v = read_scalars(
+                grid,
+                vec![
+                    jacobian(candidate.clone()).det().min().reshape([1]),
+                    self.smooth_decision(candidate.clone()),
+                    grid.decision_sum(lin.gradient.clone() * d.clone()),
+                    grid.decision_sum(d.square()),
+                ],
+            );
+            // The prox fixes the boundary exactly, so admissibility is det J > 0 (a NaN
+            // fails it too).
+            Ok(if !(v[0] > 0.0) {
+                Trial::Inadmissible
+            } else if bt.accepts(v[1], lin.smooth, v[2], v[3], l, slack) {
+                Trial::Accepted(candidate)
+            } else {
+                Trial::Rejected
+            })
+        })
+    }
+}
+
+/// Several `[1]` tensors read back from the device in one transfer, as float64 where the
+/// backend has it (decision sums already are).
+pub(super) fn read_scalars(grid: &Grid, parts: Vec<Tensor<1>>) -> Vec<f64> {
+    let dtype = match grid.accumulation() {
+        Accumulation::Float64 => burn::tensor::FloatDType::F64,
+        Accumulation::Float32 => burn::tensor::FloatDType::F32,
+    };
+    to_host(Tensor::cat(
+        parts.into_iter().map(|t| t.detach().cast(dtype)).collect(),
+        0,
+    ))
+}
+
+impl Ipalm {
+    /// The solver on `grid` (whose device must have autodiff enabled: the steps take
+    /// gradients) for features laid out as `layout`.
+    ///
+    /// # Errors
+    ///
+    /// If a parameter is out of range.
+    pub fn new(
+        grid: &Grid,
+        params: EnergyParams,
+        layout: FeatureLayout,
+        config: IpalmConfig,
+    ) -> Result<Self> {
+        config.validate()?;
+        Ok(Self {
+            grid: grid.clone(),
+            energy: PathEnergy::new(grid, params, layout.channels())?,
+            sobel: Sobel::new(grid),
+            layout,
+            config,
+        })
+    }
+
+    /// The path energy of this level.
+    pub fn path_energy(&self) -> &PathEnergy {
+        &self.energy
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &IpalmConfig {
+        &self.config
+    }
+
+    /// The relative slack of the decision tests on this grid: none where the sums are
+    /// accumulated in float64 (SPEC §6, "Floating point").
+    pub(super) fn slack(&self) -> f64 {
+        match self.grid.accumulation() {
+            Accumulation::Float64 => 0.0,
+            Accumulation::Float32 => self.config.backtracking.float32_slack,
+        }
+    }
+
+    /// `a_k = a[u_k]` for the frames `f_1..f_K` of `state`, `[K, H, W]`.
+    pub fn anisotropies(&self, state: &LevelState) -> Tensor<3> {
+        let k = state.steps();
+        let frames = Tensor::cat(state.f[1..=k].to_vec(), 0);
+        self.energy
+            .anisotropy()
+            .compute(self.layout.rgb_part(frames))
+    }
+
+    /// `E` of `state` with every `a_k` recomputed from its `f_k` (SPEC §10: the energy after
+    /// a sweep).
+    pub fn energy(&self, state: &LevelState) -> EnergyValue {
+        self.energy.value(
+            state.frames(),
+            state.deformations(),
+            self.anisotropies(state),
+        )
+    }
+
+    /// One sweep over `k = 1..K` (SPEC §6), updating `state` in place.
+    ///
+    /// # Errors
+    ///
+    /// [`Error::NonFinite`] if a NaN or infinity shows up in an energy or gradient of the
+    /// state. Every step is applied only once it is known to be finite, so `state` is then a
+    /// finite iterate: the steps `1..k−1` of this sweep done, the rest as before.
+    pub fn sweep(&self, state: &mut LevelState, kind: SweepKind) -> Result<SweepReport> {
+        if self.config.schedule == Schedule::Batched {
+            return self.sweep_batched(state, kind);
+        }
+        let k_steps = state.steps();
+        let mut report = SweepReport {
+            anisotropy: Vec::new(),
+            deformation: Vec::new(),
+            features: Vec::new(),
+        };
+        for k in 1..=k_steps {
+            if kind == SweepKind::Joint {
+                let rgb = self.layout.rgb_part(state.f[k].clone());
+                let a = self.energy.anisotropy().compute(rgb);
+                let [_, h, w] = a.dims();
+                let a = a.reshape([1, h, w]);
+                let (phi_new, step) = self.deformation_step(state, k, a.clone())?;
+                state.l_phi[k - 1] = step.lipschitz;
+                // Also after a restart: φ_k^prev ← φ_k, so the next sweep extrapolates along
+                // the restarted step, not the rejected direction (SPEC §6).
+                state.phi_prev[k - 1] = std::mem::replace(&mut state.phi[k - 1], phi_new);
+                report.anisotropy.push(a);
+                report.deformation.push(step);
+            }
+            if k < k_steps {
+                let (f_new, step) = self.feature_step(state, k)?;
+                state.l_f[k - 1] = step.lipschitz.clone();
+                state.f_prev[k] = std::mem::replace(&mut state.f[k], f_new);
+                report.features.push(step);
+            }
+        }
+        Ok(report)
+    }
+
+    /// The deformation step of `k` (SPEC §6 step 2): returns `φ_new` and what happened.
+    fn deformation_step(
+        &self,
+        state: &LevelState,
+        k: usize,
+        a: Tensor<3>,
+    ) -> Result<(Tensor<4>, DeformationStep)> {
+        let problem = DeformationProblem {
+            ipalm: self,
+            a,
+            coeffs_k: self.energy.bspline().coefficients(state.f[k].clone()),
+            f_km1: state.f[k - 1].clone(),
+            steps: state.steps() as f64,
+        };
+        let phi = state.phi[k - 1].clone();
+        let stored = state.l_phi[k - 1];
+        let mut step = DeformationStep {
+            lipschitz: stored,
+            trials: 0,
+            inadmissible_trials: 0,
+            restarted: false,
+            safeguard_doublings: 0,
+            dropped: false,
+        };
+        let dropped = |mut step: DeformationStep| -> Result<(Tensor<4>, DeformationStep)> {
+            // SPEC §6, *Giving up*: keep φ_k and the L this step started from.
+            step.dropped = true;
+            step.lipschitz = stored;
+            Ok((phi.clone(), step))
+        };
+
+        let extrapolated = (self.config.beta > 0.0)
+            .then(|| {
+                phi.clone()
+                    + (phi.clone() - state.phi_prev[k - 1].clone()).mul_scalar(self.config.beta)
+            })
+            .filter(|e| is_admissible(&self.grid, e.clone()));
+        let mut lin =
+            problem.linearise_at(extrapolated.clone().unwrap_or_else(|| phi.clone()), k)?;
+        let mut search = problem.search(&lin, stored)?;
+        step.trials += search.trials;
+        step.inadmissible_trials += search.inadmissible;
+        let Some(mut phi_new) = search.accepted.take() else {
+            return dropped(step);
+        };
+        let mut accepted_l = search.lipschitz;
+
+        if self.config.safeguard {
+            let current = problem.local_energy(phi.clone());
+            let tolerance = self.slack() * current.abs();
+            // Written so that a NaN energy counts as a rise.
+            let rises = |e: f64| !(e <= current + tolerance);
+            let mut energy = problem.local_energy(phi_new.clone());
+            if rises(energy) && extrapolated.is_some() {
+                // Restart the inertia: as L grows the prox tends to φ̃, which for the
+                // extrapolated point may lie above e(φ_k); around φ_k it tends to φ_k.
+                step.restarted = true;
+                lin = problem.linearise_at(phi.clone(), k)?;
+                let mut search = problem.search(&lin, stored)?;
+                step.trials += search.trials;
+                step.inadmissible_trials += search.inadmissible;
+                let Some(restarted) = search.accepted.take() else {
+                    return dropped(step);
+                };
+                phi_new = restarted;
+                accepted_l = search.lipschitz;
+                energy = problem.local_energy(phi_new.clone());
+            }
+            let mut l = accepted_l;
+            while rises(energy) {
+                if step.safeguard_doublings == self.config.safeguard_max {
+                    return dropped(step);
+                }
+                step.safeguard_doublings += 1;
+                l *= 2.0;
+                phi_new = lin.candidate(l);
+                energy = problem.local_energy(phi_new.clone());
+            }
+        }
+        // The doublings answered a linearisation that misled this step, not the curvature
+        // of S: the next sweep starts from the L the backtracking accepted.
+        step.lipschitz = accepted_l;
+        Ok((phi_new, step))
+    }
+
+    /// The feature step of `k < K` (SPEC §6 step 3), block by block: returns `f_new`.
+    fn feature_step(&self, state: &LevelState, k: usize) -> Result<(Tensor<4>, FeatureStep)> {
+        let bspline = self.energy.bspline();
+        let f_k = state.f[k].clone();
+        let f_tilde = if self.config.beta > 0.0 {
+            f_k.clone() + (f_k.clone() - state.f_prev[k].clone()).mul_scalar(self.config.beta)
+        } else {
+            f_k
+        };
+        // φ_k is already this sweep's, φ_{k+1} still the previous one. Both stay fixed for the
+        // whole step: φ_k's stencil serves every block and trial, and T[f_{k+1}, φ_{k+1}] does
+        // not depend on f_k at all.
+        let sampler_k = bspline.sampler(state.phi[k - 1].clone());
+        let next_warped = bspline.interpolate(
+            bspline.coefficients(state.f[k + 1].clone()),
+            state.phi[k].clone(),
+        );
+
+        let mut blocks = Vec::new();
+        let mut step = FeatureStep {
+            lipschitz: Vec::new(),
+            trials: Vec::new(),
+            dropped: Vec::new(),
+        };
+        for (b, block) in self.layout.blocks().iter().enumerate() {
+            let (start, len) = (block.channels.start, block.channels.len());
+            let problem = FeatureProblem {
+                ipalm: self,
+                sampler_k: &sampler_k,
+                prev: state.f[k - 1].clone().narrow(1, start, len),
+                next: next_warped.clone().narrow(1, start, len),
+                steps: state.steps() as f64,
+            };
+            let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
+            let leaf = x_tilde.clone().require_grad();
+            let residuals = problem.residuals(leaf.clone());
+            let grads = problem.differentiable(&residuals).backward();
+            let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
+            let v = read_scalars(
+                &self.grid,
+                vec![
+                    problem.decision(&residuals),
+                    self.grid.decision_sum(grad.clone().square()),
+                ],
+            );
+            let (q_tilde, grad_norm2) = (v[0], v[1]);
+            if !(q_tilde.is_finite() && grad_norm2.is_finite()) {
+                return Err(Error::NonFinite {
+                    what: format!(
+                        "feature step k = {k}, block {b}: Q = {q_tilde}, |grad Q|^2 = {grad_norm2}"
+                    ),
+                });
+            }
+            let bt = self.config.backtracking;
+            let slack = self.slack();
+            let search = bt.search(state.l_f[k - 1][b], |l| {
+                let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
+                let q_new = problem.decision(&problem.residuals(candidate.clone()));
+                let q_new = read_scalars(&self.grid, vec![q_new])[0];
+                // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
+                Ok(
+                    if bt.accepts(q_new, q_tilde, -grad_norm2 / l, grad_norm2 / (l * l), l, slack)
+                    {
+                        Trial::Accepted(candidate)
+                    } else {
+                        Trial::Rejected
+                    },
+                )
+            })?;
+            step.dropped.push(search.accepted.is_none());
+            // A block whose search gave up keeps its current values.
+            blocks.push(
+                search
+                    .accepted
+                    .unwrap_or_else(|| state.f[k].clone().narrow(1, start, len)),
+            );
+            step.lipschitz.push(search.lipschitz);
+            step.trials.push(search.trials);
+        }
+        Ok((Tensor::cat(blocks, 1), step))
+    }
+}
+
+/// `Q` restricted to one channel block of `f_k` (SPEC §6 step 3):
+/// `(K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}])`, still divided by `C_tot`.
+struct FeatureProblem<'a> {
+    ipalm: &'a Ipalm,
+    sampler_k: &'a Sampler,
+    /// The block of `f_{k−1}`.
+    prev: Tensor<4>,
+    /// The block of `T[f_{k+1}, φ_{k+1}]`.
+    next: Tensor<4>,
+    steps: f64,
+}
+
+impl FeatureProblem<'_> {
+    /// The residuals of the two data terms: `T[x, φ_k] − f_{k−1}` and `T[f_{k+1}, φ_{k+1}] − x`.
+    fn residuals(&self, x: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
+        let bspline = self.ipalm.energy.bspline();
+        let warped = self.sampler_k.sample(bspline.coefficients(x.clone()));
+        (warped - self.prev.clone(), self.next.clone() - x)
+    }
+
+    /// `Q` from its residuals, differentiable (float32 sum).
+    fn differentiable(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Tensor<1> {
+        let c_tot = self.ipalm.layout.channels();
+        let delta = self.ipalm.energy.params().delta;
+        (data_term_from_residual(moved.clone(), c_tot)
+            + data_term_from_residual(fixed.clone(), c_tot))
+        .mul_scalar(self.steps / delta)
+    }
+
+    /// `Q` from its residuals, summed for decisions.
+    fn decision(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Tensor<1> {
+        let grid = &self.ipalm.grid;
+        let c_tot = self.ipalm.layout.channels() as f64;
+        let delta = self.ipalm.energy.params().delta;
+        let scale = self.steps / (delta * 2.0 * c_tot * grid.pixels() as f64);
+        (grid.decision_sum(moved.clone().square()) + grid.decision_sum(fixed.clone().square()))
+            .mul_scalar(scale)
+    }
+}

@@ -1,0 +1,19 @@
+//! The solver: iPALM on one level (SPEC §6, the paper's Algorithm 1) and the coarse-to-fine
+//! driver (SPEC §7), with the observers that watch it.
+//!
+//! - [`backtracking`]: the one backtracking search on a Lipschitz estimate, with its give-up
+//!   rule, used by every step.
+//! - [`prox`]: the linearised data term of a deformation step and its pointwise prox.
+//! - [`ipalm`]: one sweep over the steps `k = 1..K`: deformation and feature blocks, the
+//!   safeguard and its inertia restart; `batched` runs the same steps as three stacked
+//!   blocks ([`ipalm::Schedule`]).
+//! - [`multilevel`]: the pyramid, prolongation, the deep model's feature-only sweeps, the
+//!   loop over sweeps and its termination.
+//! - [`observer`]: what the driver reports after each sweep, and to whom.
+
+pub mod backtracking;
+mod batched;
+pub mod ipalm;
+pub mod multilevel;
+pub mod observer;
+pub mod prox;

@@ -1,0 +1,439 @@
+//! The coarse-to-fine driver (SPEC §7): builds the pyramid, initialises the coarsest level,
+//! prolongates deformations and images (and, in the deep model, re-initialises the VGG
+//! channels and runs the `J_pre` feature-only sweeps), and runs `J` iPALM sweeps per level,
+//! reporting to an [`Observer`] after every sweep.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor};
+
+use crate::error::{Error, Result};
+use crate::model::feature_model::FeatureModel;
+use crate::model::grid::{Grid, to_host};
+use crate::model::layout::FeatureLayout;
+use crate::model::params::EnergyParams;
+use crate::model::resample::{Resize, prolongate_deformation};
+use crate::solver::ipalm::{
+    Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport, initial_lipschitz,
+};
+use crate::solver::observer::{LevelStop, LevelSummary, Observer, Phase, SweepEvent, Termination};
+
+/// Settings of a multilevel morph (SPEC §7, §9).
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MultilevelConfig {
+    /// Number of steps `K` (frames `0..=K`). Default 15.
+    pub steps: usize,
+    /// Pyramid levels. Default 5. The working size must be divisible by `2^(levels−1)` and
+    /// the coarsest level at least 4 × 4.
+    pub levels: usize,
+    /// Sweeps `J` per level: the most a level runs. Default 250.
+    pub sweeps: usize,
+    /// Convergence control: a level stops early once the relative decrease of `E` over the
+    /// last [`TOLERANCE_WINDOW`] joint sweeps falls below this. Default 0 (off: every level
+    /// runs its `J` sweeps; README, "Convergence control", says why).
+    pub tolerance: f64,
+    /// The energy's parameters.
+    pub params: EnergyParams,
+    /// The solver's settings.
+    pub ipalm: IpalmConfig,
+}
+
+/// The number of sweeps over which [`MultilevelConfig::tolerance`] measures the decrease.
+pub const TOLERANCE_WINDOW: usize = 10;
+
+impl Default for MultilevelConfig {
+    fn default() -> Self {
+        Self {
+            steps: 15,
+            levels: 5,
+            sweeps: 250,
+            tolerance: 0.0,
+            params: EnergyParams::rgb(),
+            ipalm: IpalmConfig::default(),
+        }
+    }
+}
+
+impl MultilevelConfig {
+    /// Checks every parameter.
+    ///
+    /// # Errors
+    ///
+    /// [`Error::InvalidParameter`] naming the first bad value.
+    pub fn validate(&self) -> Result<()> {
+        if self.steps < 1 {
+            return Err(Error::invalid("K", self.steps, "at least 1"));
+        }
+        if !(1..=12).contains(&self.levels) {
+            return Err(Error::invalid("levels", self.levels, "in 1..=12"));
+        }
+        if self.steps > 10_000 {
+            return Err(Error::invalid("K", self.steps, "at most 10000"));
+        }
+        if self.sweeps > 1_000_000 {
+            return Err(Error::invalid("sweeps", self.sweeps, "at most 1000000"));
+        }
+        if !(0.0..1.0).contains(&self.tolerance) {
+            return Err(Error::invalid("tol", self.tolerance, "in [0, 1) (0 = off)"));
+        }
+        self.params.validate()?;
+        self.ipalm.validate()
+    }
+
+    /// The grid sizes of the levels, coarse to fine, for a working size `height × width`.
+    ///
+    /// # Errors
+    ///
+    /// If the size is not divisible by `2^(levels−1)` or the coarsest level is below 4 × 4.
+    pub fn level_sizes(&self, height: usize, width: usize) -> Result<Vec<(usize, usize)>> {
+        let factor = 1usize << (self.levels - 1);
+        if height % factor != 0 || width % factor != 0 || height / factor < 4 || width / factor < 4
+        {
+            return Err(Error::Shape {
+                op: "multilevel pyramid",
+                detail: format!(
+                    "{height}x{width} with {} levels: both sides must be multiples of {factor} \
+                     and at least {}",
+                    self.levels,
+                    4 * factor
+                ),
+            });
+        }
+        Ok((0..self.levels)
+            .map(|l| {
+                let f = 1usize << (self.levels - 1 - l);
+                (height / f, width / f)
+            })
+            .collect())
+    }
+}
+
+/// Whether the relative decrease of `E` over the last [`TOLERANCE_WINDOW`] sweeps is below
+/// `tolerance` (never with `tolerance = 0`).
+fn converged(history: &[f64], tolerance: f64) -> bool {
+    if tolerance <= 0.0 || history.len() <= TOLERANCE_WINDOW {
+        return false;
+    }
+    let (then, now) = (history[history.len() - 1 - TOLERANCE_WINDOW], history[history.len() - 1]);
+    (then - now) < tolerance * then.abs()
+}
+
+/// The result of a morph.
+#[derive(Debug)]
+pub struct Morph {
+    /// The last level's grid.
+    pub grid: Grid,
+    /// The last level's state: `f_0..f_K`, `φ_1..φ_K`.
+    pub state: LevelState,
+    /// `a_1..a_K` of the final frames, `[K, H, W]`.
+    pub anisotropy: Tensor<3>,
+    /// The channel layout of `state.f` (the RGB part of a frame is `layout.rgb_part(f)`).
+    pub layout: FeatureLayout,
+    /// Why it stopped.
+    pub termination: Termination,
+    /// What each level did, coarse to fine (only the levels reached).
+    pub levels: Vec<LevelSummary>,
+}
+
+impl Morph {
+    /// The frames `u_0..u_K` as RGB images (SPEC §8: the RGB part, divided by `η` in the
+    /// deep model), each `[1, 3, H, W]`.
+    pub fn images(&self) -> Vec<Tensor<4>> {
+        self.state
+            .f
+            .iter()
+            .map(|f| self.layout.rgb_part(f.clone()))
+            .collect()
+    }
+}
+
+/// The multilevel driver.
+#[derive(Clone, Debug)]
+pub struct Multilevel {
+    config: MultilevelConfig,
+    /// A fault to inject for testing the non-finite path (see
+    /// [`inject_nonfinite`](Self::inject_nonfinite)).
+    inject_nonfinite: Option<(usize, usize)>,
+}
+
+impl Multilevel {
+    /// A driver with validated settings.
+    ///
+    /// # Errors
+    ///
+    /// If a setting is out of range.
+    pub fn new(config: MultilevelConfig) -> Result<Self> {
+        config.validate()?;
+        Ok(Self {
+            config,
+            inject_nonfinite: None,
+        })
+    }
+
+    /// For tests of what happens when the optimisation meets a NaN: after sweep `sweep` of
+    /// level `level` (of whichever phase runs it) the interior frame `f_1` is made NaN, as a
+    /// numerical failure would. The driver must then stop with [`Termination::NonFinite`]
+    /// and the last finite iterate.
+    #[doc(hidden)]
+    pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
+        self.inject_nonfinite = Some((level, sweep));
+        self
+    }
+
+    /// The settings.
+    pub fn config(&self) -> &MultilevelConfig {
+        &self.config
+    }
+
+    /// Morphs `u_a` into `u_b` (RGB in `[0, 1]`, `[1, 3, H, W]`, on `device`, which must have
+    /// autodiff enabled). Stops after the current sweep when `interrupt` is raised.
+    ///
+    /// # Errors
+    ///
+    /// Mismatched or unsuitable sizes, or a non-finite value in the optimisation (naming the
+    /// level and sweep).
+    pub fn run(
+        &self,
+        device: &Device,
+        u_a: Tensor<4>,
+        u_b: Tensor<4>,
+        observer: &mut dyn Observer,
+        interrupt: &AtomicBool,
+    ) -> Result<Morph> {
+        self.run_with(device, u_a, u_b, &FeatureModel::Rgb, observer, interrupt)
+    }
+
+    /// Like [`run`](Self::run), with the feature vectors of `model` (the deep model's
+    /// feature maps must have been computed from the same `u_a`, `u_b`).
+    ///
+    /// # Errors
+    ///
+    /// As [`run`](Self::run); in the deep model also more than 5 levels (VGG19 has 5 taps).
+    pub fn run_with(
+        &self,
+        device: &Device,
+        u_a: Tensor<4>,
+        u_b: Tensor<4>,
+        model: &FeatureModel,
+        observer: &mut dyn Observer,
+        interrupt: &AtomicBool,
+    ) -> Result<Morph> {
+        let cfg = &self.config;
+        let [_, ca, h, w] = u_a.dims();
+        if u_a.dims() != u_b.dims() || ca != 3 {
+            return Err(Error::Shape {
+                op: "morph inputs",
+                detail: format!(
+                    "A is {:?} and B is {:?}: expected two [1, 3, H, W] RGB images of one size",
+                    u_a.dims(),
+                    u_b.dims()
+                ),
+            });
+        }
+        let sizes = cfg.level_sizes(h, w)?;
+        let dtype = u_a.dtype();
+        let full = Grid::new(h, w, device, dtype)?;
+        let started = Instant::now();
+        let k = cfg.steps;
+
+        let mut previous: Option<(Grid, LevelState, FeatureLayout)> = None;
+        let mut summaries = Vec::with_capacity(sizes.len());
+        for (level, &(lh, lw)) in sizes.iter().enumerate() {
+            let downsampling = sizes.len() - 1 - level;
+            let layout = model.layout(downsampling)?;
+            let grid = Grid::new(lh, lw, device, dtype)?;
+            let resize = Resize::new(&full, &grid);
+            let (u_a_level, u_b_level) = (resize.apply(u_a.clone()), resize.apply(u_b.clone()));
+            let (f_a, f_b) = match model {
+                FeatureModel::Rgb => (u_a_level, u_b_level),
+                FeatureModel::Deep(deep) => {
+                    let (tap_a, tap_b) = deep.maps(downsampling)?;
+                    (deep.stack(u_a_level, tap_a), deep.stack(u_b_level, tap_b))
+                }
+            };
+            let prolongated = previous.is_some();
+            let mut state = match previous.take() {
+                None => LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,
+                Some((coarse, coarse_state, coarse_layout)) => {
+                    let up = Resize::new(&coarse, &grid);
+                    let mut f = Vec::with_capacity(k + 1);
+                    f.push(f_a.clone());
+                    for (step, frame) in coarse_state.f[1..k].iter().enumerate() {
+                        let u = up.apply(coarse_layout.rgb_part(frame.clone()));
+                        f.push(match model {
+                            FeatureModel::Rgb => u,
+                            // SPEC §7: VGG channels from the convex combination of the
+                            // endpoints, η-scaled RGB from the prolongated images.
+                            FeatureModel::Deep(deep) => {
+                                let t = (step + 1) as f64 / k as f64;
+                                let features = f_a
+                                    .clone()
+                                    .narrow(1, 3, layout.channels() - 3)
+                                    .mul_scalar(1.0 - t)
+                                    + f_b
+                                        .clone()
+                                        .narrow(1, 3, layout.channels() - 3)
+                                        .mul_scalar(t);
+                                deep.stack(u, features)
+                            }
+                        });
+                    }
+                    f.push(f_b);
+                    let phi = prolongate_deformation(&coarse, &grid, coarse_state.deformations());
+                    let phi = (0..k).map(|i| phi.clone().narrow(0, i, 1)).collect();
+                    let (l_phi, l_f) = initial_lipschitz(&grid, &layout, k, cfg.params.delta);
+                    LevelState::new(f, phi, l_phi, l_f)?
+                }
+            };
+            let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
+
+            let evaluate = |state: &LevelState| -> std::result::Result<[f64; 3], String> {
+                let value = ipalm.energy(state);
+                let parts = to_host(Tensor::cat(
+                    vec![
+                        value.total,
+                        value.regularizer.clone().mul_scalar(k as f64),
+                        value.data.clone().mul_scalar(k as f64 / cfg.params.delta),
+                    ],
+                    0,
+                ));
+                let (total, per_step) = (parts[0], &parts[1..]);
+                if total.is_finite() {
+                    let sum = |v: &[f64]| v.iter().sum::<f64>();
+                    return Ok([total, sum(&per_step[..k]), sum(&per_step[k..])]);
+                }
+                let bad = (0..k)
+                    .find(|&i| !(per_step[i].is_finite() && per_step[k + i].is_finite()))
+                    .map_or(String::new(), |i| {
+                        format!(
+                            " (step k = {}: K·R = {}, (K/δ)·D = {})",
+                            i + 1,
+                            per_step[i],
+                            per_step[k + i]
+                        )
+                    });
+                Err(format!("the path energy is {total}{bad}"))
+            };
+            let mut report_sweep =
+                |phase: Phase, sweep: usize, report: Option<&SweepReport>, state: &LevelState, numbers: [f64; 3], stop: Option<LevelStop>| {
+                    observer.sweep(&SweepEvent {
+                        level,
+                        levels: sizes.len(),
+                        grid: &grid,
+                        phase,
+                        sweep,
+                        sweeps: match phase {
+                            Phase::Features => model.pre_sweeps(),
+                            Phase::Joint => cfg.sweeps,
+                        },
+                        energy: numbers[0],
+                        regularizer: numbers[1],
+                        data: numbers[2],
+                        report,
+                        state,
+                        seconds: started.elapsed().as_secs_f64(),
+                        stop,
+                    });
+                };
+            // SPEC §7: after a prolongation the deep model first fits the features to the
+            // prolongated deformations (pointless on the first level, where the convex
+            // combination is already optimal for φ = Id).
+            let pre = if prolongated { model.pre_sweeps() } else { 0 };
+            let phases = [(Phase::Features, pre, SweepKind::FeaturesOnly), (Phase::Joint, cfg.sweeps, SweepKind::Joint)];
+            let mut stopped = None;
+            let mut history: Vec<f64> = Vec::new();
+            let mut level_stop = LevelStop::Sweeps;
+            let mut joint_sweeps = 0;
+            'phases: for (phase, sweeps, kind) in phases {
+                if sweeps == 0 && phase == Phase::Features {
+                    continue;
+                }
+                match evaluate(&state) {
+                    Ok(numbers) => {
+                        if phase == Phase::Joint {
+                            history.push(numbers[0]);
+                        }
+                        report_sweep(phase, 0, None, &state, numbers, None)
+                    }
+                    Err(what) => {
+                        stopped = Some(Termination::NonFinite { level, sweep: 0, phase, what });
+                        break 'phases;
+                    }
+                }
+                for sweep in 1..=sweeps {
+                    // The last finite iterate: cheap to keep, these handles are the tensors
+                    // the sweep moves into `f_prev` and `phi_prev` anyway.
+                    let before = (state.f.clone(), state.phi.clone());
+                    let outcome = match ipalm.sweep(&mut state, kind) {
+                        Ok(report) => Ok(report),
+                        Err(Error::NonFinite { what }) => Err(what),
+                        Err(other) => return Err(other),
+                    };
+                    if self.inject_nonfinite == Some((level, sweep)) {
+                        state.f[1] = state.f[1].clone().mul_scalar(f64::NAN);
+                    }
+                    match outcome.and_then(|report| evaluate(&state).map(|n| (report, n))) {
+                        Ok((report, numbers)) => {
+                            let mut stop = None;
+                            if phase == Phase::Joint {
+                                joint_sweeps = sweep;
+                                history.push(numbers[0]);
+                                if converged(&history, cfg.tolerance) {
+                                    stop = Some(LevelStop::Converged);
+                                } else if sweep == sweeps {
+                                    stop = Some(LevelStop::Sweeps);
+                                }
+                            }
+                            report_sweep(phase, sweep, Some(&report), &state, numbers, stop);
+                            if stop == Some(LevelStop::Converged) {
+                                level_stop = LevelStop::Converged;
+                                break 'phases;
+                            }
+                        }
+                        Err(what) => {
+                            let (f, phi) = before;
+                            state.f_prev = f.clone();
+                            state.phi_prev = phi.clone();
+                            state.f = f;
+                            state.phi = phi;
+                            stopped = Some(Termination::NonFinite { level, sweep, phase, what });
+                            break 'phases;
+                        }
+                    }
+                    if interrupt.load(Ordering::Relaxed) {
+                        stopped = Some(Termination::Interrupted {
+                            level,
+                            sweep: if phase == Phase::Joint { sweep } else { 0 },
+                        });
+                        break 'phases;
+                    }
+                }
+            }
+            summaries.push(LevelSummary {
+                level,
+                size: [lh, lw],
+                sweeps: joint_sweeps,
+                stop: match &stopped {
+                    Some(Termination::Interrupted { .. }) => LevelStop::Interrupted,
+                    Some(Termination::NonFinite { .. }) => LevelStop::NonFinite,
+                    _ => level_stop,
+                },
+            });
+            if stopped.is_some() || level + 1 == sizes.len() {
+                let anisotropy = ipalm.anisotropies(&state);
+                return Ok(Morph {
+                    grid,
+                    state,
+                    anisotropy,
+                    layout,
+                    termination: stopped.unwrap_or(Termination::Completed),
+                    levels: summaries,
+                });
+            }
+            previous = Some((grid, state, layout));
+        }
+        unreachable!("the last level returns")
+    }
+}

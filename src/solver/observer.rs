@@ -1,0 +1,167 @@
+//! What the driver reports after each sweep, to whom, and why it stopped. Everything outside
+//! the numerics (progress bars, energy logs, frame capture) is an [`Observer`]: the loop
+//! never prints.
+
+use crate::model::grid::Grid;
+use crate::solver::ipalm::{LevelState, SweepReport};
+
+/// Which sweeps an event belongs to.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Phase {
+    /// The deep model's feature-only sweeps after a prolongation (SPEC §7).
+    Features,
+    /// The joint sweeps (`J` per level).
+    Joint,
+}
+
+/// What an observer sees after each sweep.
+#[derive(Debug)]
+pub struct SweepEvent<'a> {
+    /// Level index, 0 = coarsest.
+    pub level: usize,
+    /// Number of levels.
+    pub levels: usize,
+    /// The level's grid.
+    pub grid: &'a Grid,
+    /// Which sweeps: the joint ones or the deep model's feature-only ones before them.
+    pub phase: Phase,
+    /// Sweep index in this phase on this level, 1-based (0 = the state the phase starts
+    /// from; for [`Phase::Joint`] that is after any feature-only sweeps).
+    pub sweep: usize,
+    /// Sweeps of this phase per level.
+    pub sweeps: usize,
+    /// `E` after the sweep (with `a_k` recomputed, SPEC §10).
+    pub energy: f64,
+    /// `Σ_k R_k` of that evaluation (times `K`, as in `E`).
+    pub regularizer: f64,
+    /// `Σ_k D_k / δ` of that evaluation (times `K`, as in `E`).
+    pub data: f64,
+    /// What the sweep did (`None` for the initial state).
+    pub report: Option<&'a SweepReport>,
+    /// The state after the sweep.
+    pub state: &'a LevelState,
+    /// Seconds since the morph started.
+    pub seconds: f64,
+    /// On the level's last joint sweep: why the level stops there.
+    pub stop: Option<LevelStop>,
+}
+
+/// Why a level stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LevelStop {
+    /// It ran its `J` sweeps.
+    Sweeps,
+    /// `E` decreased by less than the tolerance over the last sweeps.
+    Converged,
+    /// The interrupt flag was raised.
+    Interrupted,
+    /// A non-finite value stopped the morph.
+    NonFinite,
+}
+
+impl LevelStop {
+    /// The word `energy.csv` and `config.json` use.
+    pub fn name(self) -> &'static str {
+        match self {
+            LevelStop::Sweeps => "sweeps",
+            LevelStop::Converged => "converged",
+            LevelStop::Interrupted => "interrupted",
+            LevelStop::NonFinite => "non_finite",
+        }
+    }
+}
+
+/// What one level did.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct LevelSummary {
+    /// Level index, 0 = coarsest.
+    pub level: usize,
+    /// `[H, W]`.
+    pub size: [usize; 2],
+    /// Joint sweeps run.
+    pub sweeps: usize,
+    /// Why it stopped.
+    pub stop: LevelStop,
+}
+
+/// Receives progress from the driver; everything outside the numerics (progress bars,
+/// energy logs, frame capture) is an observer.
+pub trait Observer {
+    /// After the initial state of a level (sweep 0) and after every sweep.
+    fn sweep(&mut self, event: &SweepEvent<'_>);
+}
+
+/// An observer that does nothing.
+impl Observer for () {
+    fn sweep(&mut self, _: &SweepEvent<'_>) {}
+}
+
+impl<T: Observer + ?Sized> Observer for &mut T {
+    fn sweep(&mut self, event: &SweepEvent<'_>) {
+        (**self).sweep(event);
+    }
+}
+
+/// Two observers, called in order.
+impl<A: Observer, B: Observer> Observer for (A, B) {
+    fn sweep(&mut self, event: &SweepEvent<'_>) {
+        self.0.sweep(event);
+        self.1.sweep(event);
+    }
+}
+
+/// Why the driver stopped.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Termination {
+    /// Every level ran its `J` sweeps.
+    Completed,
+    /// The interrupt flag was raised; the state is the one after the last full sweep.
+    Interrupted {
+        /// Level at which it stopped.
+        level: usize,
+        /// Sweeps done on that level.
+        sweep: usize,
+    },
+    /// A NaN or infinity appeared in sweep `sweep` of level `level` (or in the energy after
+    /// it); the state is the last finite iterate, the one before that sweep.
+    NonFinite {
+        /// Level at which it happened.
+        level: usize,
+        /// The sweep in which it happened (0: the level's initial state), counted in the
+        /// phase `phase`.
+        sweep: usize,
+        /// The joint sweeps or the deep model's feature-only ones.
+        phase: Phase,
+        /// Which quantity, and at which step `k`.
+        what: String,
+    },
+}
+
+impl std::fmt::Display for Termination {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Completed => f.write_str("completed"),
+            Self::Interrupted { level, sweep } => {
+                write!(f, "interrupted at level {level}, sweep {sweep}")
+            }
+            Self::NonFinite {
+                level,
+                sweep,
+                phase,
+                what,
+            } => {
+                let kind = match phase {
+                    Phase::Joint => "",
+                    Phase::Features => "feature-only ",
+                };
+                write!(
+                    f,
+                    "stopped by a non-finite value at level {level}, {kind}sweep {sweep} ({what}); \
+                     the state is the last finite iterate, before that sweep"
+                )
+            }
+        }
+    }
+}
+

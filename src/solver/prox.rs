@@ -1,0 +1,126 @@
+//! The linearised data term of a deformation step and its closed-form pointwise prox
+//! (SPEC §6).
+
+use burn::tensor::Tensor;
+
+use crate::model::deformation::with_identity_boundary;
+use crate::model::grid::Grid;
+use crate::model::sobel::Sobel;
+use crate::model::warp::BSpline;
+
+/// The data term `D[f_{k−1}, f_k, φ]` linearised around `φ̃`, reduced to what the prox
+/// needs at each pixel: with `r_c = T[f_{k,c}, φ̃] − f_{k−1,c}` and
+/// `Λ_c = ½ (∇T[f_{k,c}, φ̃] + ∇f_{k−1,c})` (Sobel, pixel units),
+/// the matrix `Σ_c Λ_c Λ_cᵀ` and the vector `Σ_c Λ_c (Λ_cᵀ φ̃ − r_c)`.
+///
+/// Neither depends on the trial `L`, so a backtracking sequence builds this once and calls
+/// [`prox`](Self::prox) per trial.
+#[derive(Clone, Debug)]
+pub struct LinearisedData {
+    grid: Grid,
+    kappa: f64,
+    /// `Σ_c Λ_c Λ_cᵀ` entries `(0,0)`, `(0,1)`, `(1,1)`, `[1, 1, H, W]` each.
+    a00: Tensor<4>,
+    a01: Tensor<4>,
+    a11: Tensor<4>,
+    /// `Σ_c Λ_c (Λ_cᵀ φ̃ − r_c)`, `[1, 2, H, W]`.
+    v: Tensor<4>,
+}
+
+/// The residual and slopes of the linearisation, for inspection and tests.
+#[derive(Clone, Debug)]
+pub struct Linearisation {
+    /// `r_c = T[f_{k,c}, φ̃] − f_{k−1,c}`, `[1, C, H, W]`.
+    pub residual: Tensor<4>,
+    /// `Λ_c`, `[1, C, 2, H, W]`.
+    pub slopes: Tensor<5>,
+}
+
+/// `r` and `Λ` of the linearisation around `phi_tilde` (SPEC §6).
+///
+/// # Shapes
+/// - `coeffs_k`: `P f_k`, `[1, C, H, W]`; `f_km1`: `[1, C, H, W]`; `phi_tilde`: `[1, 2, H, W]`
+pub fn linearise(
+    bspline: &BSpline,
+    sobel: &Sobel,
+    coeffs_k: Tensor<4>,
+    f_km1: Tensor<4>,
+    phi_tilde: Tensor<4>,
+) -> Linearisation {
+    let warped = bspline.interpolate(coeffs_k, phi_tilde);
+    // ½ (∇T + ∇f_{k−1}) = ½ ∇(T + f_{k−1}): the Sobel operator is linear.
+    let slopes = sobel
+        .gradient(warped.clone() + f_km1.clone())
+        .mul_scalar(0.5);
+    Linearisation {
+        residual: warped - f_km1,
+        slopes,
+    }
+}
+
+impl LinearisedData {
+    /// Reduces a [`Linearisation`] around `phi_tilde` for the prox with weight
+    /// `κ = K / (δ · C_tot · H · W)`.
+    ///
+    /// # Shapes
+    /// - `phi_tilde`: `[1, 2, H, W]`
+    pub fn new(grid: &Grid, lin: Linearisation, phi_tilde: Tensor<4>, kappa: f64) -> Self {
+        let [n, c, _, h, w] = lin.slopes.dims();
+        let l0 = lin.slopes.clone().narrow(2, 0, 1).reshape([n, c, h, w]);
+        let l1 = lin.slopes.narrow(2, 1, 1).reshape([n, c, h, w]);
+        let p0 = phi_tilde.clone().narrow(1, 0, 1);
+        let p1 = phi_tilde.narrow(1, 1, 1);
+        let q = l0.clone() * p0 + l1.clone() * p1 - lin.residual;
+        let channel_sum = |t: Tensor<4>| t.sum_dim(1);
+        Self {
+            grid: grid.clone(),
+            kappa,
+            a00: channel_sum(l0.clone().square()),
+            a01: channel_sum(l0.clone() * l1.clone()),
+            a11: channel_sum(l1.clone().square()),
+            v: Tensor::cat(vec![channel_sum(l0 * q.clone()), channel_sum(l1 * q)], 1),
+        }
+    }
+
+    /// The prox for the trial `L` at `y = φ̃ − g / L`:
+    /// `(L·I + κ Σ Λ Λᵀ)⁻¹ (L·y + κ Σ Λ (Λᵀ φ̃ − r))` at every pixel (a 2 × 2 solve), then
+    /// `Id` on the boundary.
+    ///
+    /// # Shapes
+    /// - `y`: `[1, 2, H, W]`
+    /// - output: `[1, 2, H, W]`
+    pub fn prox(&self, y: Tensor<4>, l: f64) -> Tensor<4> {
+        let t = self.kappa / l;
+        self.solve(y, |m| m.mul_scalar(t))
+    }
+
+    /// [`prox`](Self::prox) for a batch of linearisations, each with its own trial `L`.
+    ///
+    /// # Shapes
+    /// - `y`: `[N, 2, H, W]`, `l`: `N` values
+    /// - output: `[N, 2, H, W]`
+    pub fn prox_each(&self, y: Tensor<4>, l: &[f64]) -> Tensor<4> {
+        let t: Tensor<4> = self
+            .grid
+            .tensor(l.iter().map(|l| self.kappa / l).collect(), [l.len(), 1, 1, 1]);
+        self.solve(y, |m| m * t.clone())
+    }
+
+    /// The pointwise 2 × 2 solve with `t = κ/L` applied by `scale`.
+    fn solve(&self, y: Tensor<4>, scale: impl Fn(Tensor<4>) -> Tensor<4>) -> Tensor<4> {
+        // Divided through by L, the system is (I + t Σ Λ Λᵀ) x = y + t Σ Λ (Λᵀ φ̃ − r) with
+        // t = κ / L: the same solution, but no L² that overflows float32 when backtracking
+        // has doubled L many times.
+        let m00 = scale(self.a00.clone()).add_scalar(1.0);
+        let m01 = scale(self.a01.clone());
+        let m11 = scale(self.a11.clone()).add_scalar(1.0);
+        let b = y + scale(self.v.clone());
+        let b0 = b.clone().narrow(1, 0, 1);
+        let b1 = b.narrow(1, 1, 1);
+        // Σ Λ Λᵀ ⪰ 0, so the determinant is at least 1.
+        let det = m00.clone() * m11.clone() - m01.clone().square();
+        let x0 = (m11 * b0.clone() - m01.clone() * b1.clone()) / det.clone();
+        let x1 = (m00 * b1 - m01 * b0) / det;
+        with_identity_boundary(&self.grid, Tensor::cat(vec![x0, x1], 1))
+    }
+}

@@ -1,0 +1,589 @@
+//! The `deepmorph` binary end to end on tiny inputs: outputs written and reloadable, inputs of
+//! two sizes resized, and every kind of bad input rejected with one clear line, a non-zero
+//! exit and no panic.
+
+use crate::common;
+
+use std::path::{Path, PathBuf};
+
+use assert_cmd::Command;
+use common::fails;
+use deepmorph::Backend;
+use deepmorph::io::images::{RgbImage, write_png};
+use deepmorph::io::energy_log::EnergyLog;
+use deepmorph::io::outputs::load_deformations;
+
+fn scratch(name: &str) -> PathBuf {
+    common::scratch("cli", name)
+}
+
+fn deepmorph() -> Command {
+    Command::cargo_bin("deepmorph").unwrap()
+}
+
+/// A smooth test image of `h × w` with a bright spot at `(cy, cx)` (fractions).
+fn write_image(path: &Path, h: usize, w: usize, cy: f64, cx: f64) {
+    let n = h * w;
+    let mut data = vec![0.0f32; 3 * n];
+    for i in 0..h {
+        for j in 0..w {
+            let (y, x) = (i as f64 / h as f64 - cy, j as f64 / w as f64 - cx);
+            let v = (-(x * x + y * y) / 0.02).exp() as f32;
+            for c in 0..3 {
+                data[c * n + i * w + j] = 0.2 + 0.6 * v * (1.0 - 0.2 * c as f32);
+            }
+        }
+    }
+    write_png(path, &RgbImage::new(h, w, data).unwrap().to_rgb8()).unwrap();
+}
+
+const TINY: [&str; 8] = [
+    "-K",
+    "3",
+    "--levels",
+    "2",
+    "--sweeps",
+    "3",
+    "--backend",
+    "flex",
+];
+
+#[test]
+fn demo_writes_every_output() {
+    let dir = scratch("demo");
+    let out = dir.join("out");
+    deepmorph()
+        .args(["demo", "--size", "32", "-q", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .assert()
+        .success();
+    for name in deepmorph::io::outputs::output_names(3) {
+        assert!(out.join(&name).is_file(), "missing {name}");
+    }
+    let frame = RgbImage::load(&out.join("frame_03.png")).unwrap();
+    assert_eq!((frame.height(), frame.width()), (32, 32));
+    let (shape, phi) = load_deformations(&out).unwrap();
+    assert_eq!(shape, [3, 2, 32, 32]);
+    assert!(phi.iter().all(|v| v.is_finite()));
+    let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
+    assert_eq!(
+        csv.lines().count(),
+        1 + 2 * 4,
+        "header + (1 + 3 sweeps) per level"
+    );
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["config"]["solver"]["steps"], 3);
+    assert_eq!(config["outcome"]["termination"], "completed");
+    assert!(
+        !std::fs::read_dir(&out)
+            .unwrap()
+            .any(|e| { e.unwrap().file_name().to_string_lossy().contains(".tmp-") })
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn morph_resizes_inputs_of_two_sizes() {
+    let dir = scratch("morph");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 40, 48, 0.5, 0.4);
+    write_image(&b, 30, 36, 0.5, 0.6);
+    let out = dir.join("out");
+    let assert = deepmorph()
+        .arg("morph")
+        .args([&a, &b])
+        .args(["--max-side", "32", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .assert()
+        .success();
+    let stderr = String::from_utf8_lossy(&assert.get_output().stderr).into_owned();
+    // 48x40 scaled to a longest side of 32 is 32x26.7, rounded to multiples of 2.
+    assert!(
+        stderr.contains("A: 48x40 resized to the working size 32x26"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("B: 36x30 resized to the working size 32x26"),
+        "{stderr}"
+    );
+    let frame = RgbImage::load(&out.join("frame_00.png")).unwrap();
+    assert_eq!((frame.height(), frame.width()), (26, 32));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn bad_inputs_fail_with_a_clear_message() {
+    let dir = scratch("bad");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 16, 16, 0.5, 0.4);
+    write_image(&b, 16, 16, 0.5, 0.6);
+    let out = dir.join("out");
+    let morph = |extra: &[&str]| {
+        let mut cmd = deepmorph();
+        cmd.arg("morph")
+            .args([&a, &b])
+            .arg("-o")
+            .arg(&out)
+            .args(extra);
+        if !extra.contains(&"-K") {
+            cmd.args(&TINY[..2]);
+        }
+        cmd.args(&TINY[2..]);
+        cmd
+    };
+
+    let missing = dir.join("missing.png");
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&missing, &b])
+            .arg("-o")
+            .arg(&out),
+    );
+    assert!(err.contains("missing.png"), "{err}");
+
+    let garbage = dir.join("garbage.png");
+    std::fs::write(&garbage, b"not an image at all").unwrap();
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&garbage, &b])
+            .arg("-o")
+            .arg(&out),
+    );
+    assert!(err.contains("garbage.png"), "{err}");
+
+    let err = fails(&mut morph(&["-K", "0"]));
+    assert!(err.contains("K = 0"), "{err}");
+    let err = fails(&mut morph(&["--delta", "-1"]));
+    assert!(err.contains("delta = -1"), "{err}");
+    let err = fails(&mut morph(&["--mu", "NaN"]));
+    assert!(err.contains("mu = NaN"), "{err}");
+    let err = fails(&mut morph(&["--beta", "1.5"]));
+    assert!(err.contains("beta = 1.5"), "{err}");
+    let err = fails(&mut morph(&["--size", "33x32"]));
+    assert!(err.contains("multiples of 2"), "{err}");
+    let err = fails(&mut morph(&["--backend", "cuda"]));
+    assert!(err.contains("cuda"), "{err}");
+
+    // An input that would be overwritten by an output: refused, and left intact.
+    let frame0 = dir.join("frame_00.png");
+    std::fs::copy(&a, &frame0).unwrap();
+    let before = std::fs::read(&frame0).unwrap();
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&frame0, &b])
+            .arg("-o")
+            .arg(&dir)
+            .args(TINY),
+    );
+    assert!(err.contains("would overwrite"), "{err}");
+    assert_eq!(std::fs::read(&frame0).unwrap(), before);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Ctrl-C stops after the current sweep and still writes every output (exit status 130).
+#[test]
+fn interrupt_writes_outputs() {
+    let dir = scratch("interrupt");
+    let out = dir.join("out");
+    let binary = assert_cmd::cargo::cargo_bin("deepmorph");
+    let mut child = std::process::Command::new(binary)
+        .args([
+            "demo", "--size", "32", "-K", "3", "--levels", "2", "--sweeps", "1000000", "-q",
+        ])
+        .args(["--backend", "flex", "-o"])
+        .arg(&out)
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_secs(2));
+    let killed = std::process::Command::new("kill")
+        .args(["-INT", &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(killed.success());
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no exit 120 s after Ctrl-C"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    };
+    assert_eq!(status.code(), Some(130));
+    for name in deepmorph::io::outputs::output_names(3) {
+        assert!(out.join(&name).is_file(), "missing {name}");
+    }
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    let termination = config["outcome"]["termination"].as_str().unwrap();
+    assert!(
+        termination.starts_with("interrupted at level 0"),
+        "{termination}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A NaN met by the solver (injected after sweep 2 of level 1) still writes every output,
+/// from the last finite iterate, says where it happened, and exits with status 3.
+#[test]
+fn a_nonfinite_value_writes_outputs_and_exits_3() {
+    let dir = scratch("nonfinite");
+    let out = dir.join("out");
+    let output = deepmorph()
+        .args(["demo", "--size", "32", "-o"])
+        .arg(&out)
+        .args(["-K", "3", "--levels", "2", "--sweeps", "4", "--backend", "flex"])
+        .env("DEEPMORPH_INJECT_NONFINITE", "1:2")
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(3), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(
+        stderr.contains("non-finite value at level 1, sweep 2") && stderr.contains("NaN"),
+        "{stderr}"
+    );
+    for name in deepmorph::io::outputs::output_names(3) {
+        assert!(out.join(&name).is_file(), "missing {name}");
+    }
+    let (_, phi) = load_deformations(&out).unwrap();
+    assert!(phi.iter().all(|v| v.is_finite()));
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    let termination = config["outcome"]["termination"].as_str().unwrap();
+    assert!(termination.contains("non-finite value at level 1, sweep 2"), "{termination}");
+    // The energy log ends with the last finite sweep.
+    let log = EnergyLog::from_csv(&std::fs::read_to_string(out.join("energy.csv")).unwrap())
+        .unwrap();
+    let last = log.records.last().unwrap();
+    assert_eq!((last.level, last.sweep), (1, 1));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `energy.csv` and the `-v` log count the safeguard's restarts and the dropped steps of every
+/// sweep (SPEC §6).
+#[test]
+fn restarts_and_drops_are_logged() {
+    let dir = scratch("restarts");
+    let out = dir.join("out");
+    let output = deepmorph()
+        .args(["demo", "--size", "32", "-v", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .output()
+        .unwrap();
+    assert!(output.status.success());
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    let sweep_lines: Vec<&str> = stderr.lines().filter(|l| l.contains("sweep")).collect();
+    assert!(
+        sweep_lines
+            .iter()
+            .filter(|l| l.contains("/3:"))
+            .all(|l| l.contains("restarts ") && l.contains("dropped phi ")),
+        "{stderr}"
+    );
+    let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
+    assert!(
+        csv.lines()
+            .next()
+            .unwrap()
+            .ends_with(",restarts,drops_phi,drops_f,stop"),
+        "{csv}"
+    );
+    let log = EnergyLog::from_csv(&csv).unwrap();
+    assert_eq!(log.records.len(), 8);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `config.json` is the record of a run: `morph --config OUT/config.json -o OUT2` runs the
+/// same morph again (the demo's inputs are recorded as such) and gets the same deformations.
+#[test]
+fn a_recorded_config_reproduces_the_run() {
+    let dir = scratch("reproduce");
+    let (first, second) = (dir.join("first"), dir.join("second"));
+    deepmorph()
+        .args(["demo", "--size", "32", "-q", "--delta", "0.5", "--beta", "0.5", "-o"])
+        .arg(&first)
+        .args(TINY)
+        .assert()
+        .success();
+    deepmorph()
+        .args(["morph", "-q", "--config"])
+        .arg(first.join("config.json"))
+        .arg("-o")
+        .arg(&second)
+        .assert()
+        .success();
+    let (shape, a) = load_deformations(&first).unwrap();
+    let (shape_b, b) = load_deformations(&second).unwrap();
+    assert_eq!(shape, shape_b);
+    let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(worst <= 1e-6, "deformations differ by {worst} px");
+    let read = |d: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(d.join("config.json")).unwrap()).unwrap()
+    };
+    assert_eq!(read(&first)["config"], read(&second)["config"]);
+    assert_eq!(read(&second)["config"]["solver"]["params"]["delta"], 0.5);
+    assert_eq!(read(&second)["inputs"]["kind"], "demo");
+    // A flag given with --config overrides the recorded value.
+    let third = dir.join("third");
+    deepmorph()
+        .args(["morph", "-q", "-K", "2", "--config"])
+        .arg(first.join("config.json"))
+        .arg("-o")
+        .arg(&third)
+        .assert()
+        .success();
+    assert_eq!(read(&third)["config"]["solver"]["steps"], 2);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The defaults `--help` shows are the library's (they are written once, in its `Default`
+/// impls), and the enums list their values.
+#[test]
+fn help_shows_the_librarys_defaults() {
+    use deepmorph::EnergyParams;
+    use deepmorph::app::config::MorphConfig;
+    use deepmorph::model::feature_model::DeepConfig;
+    // `-h`: the one-line form, where clap lists an enum's values as `[possible values: …]`.
+    let out = deepmorph().args(["morph", "-h"]).output().unwrap();
+    let help = String::from_utf8_lossy(&out.stdout).split_whitespace().collect::<Vec<_>>().join(" ");
+    let (paper, demo) = (MorphConfig::default(), MorphConfig::demo());
+    let (rgb, deep) = (EnergyParams::rgb(), EnergyParams::deep());
+    for want in [
+        format!("[default: {}; demo: {}]", paper.solver.steps, demo.solver.steps),
+        format!("[default: {}; demo: {}]", paper.solver.levels, demo.solver.levels),
+        format!("[default: {}; demo: {}]", paper.solver.sweeps, demo.solver.sweeps),
+        format!("[default: {}; deep model: {}]", rgb.lambda, deep.lambda),
+        format!("[default: {}; deep model: {}]", rgb.mu, deep.mu),
+        format!("[default: {}]", rgb.delta),
+        format!("[default: {}]", rgb.xi1),
+        format!("[default: {}]", rgb.xi2),
+        format!("[default: {}]", rgb.sigma),
+        format!("[default: {}]", rgb.rho),
+        format!("[default: {}]", paper.solver.ipalm.beta),
+        format!("[default: {}]", DeepConfig::default().eta),
+        format!("[default: {}]", DeepConfig::default().feature_rms),
+        format!("[default: {}]", DeepConfig::default().pre_sweeps),
+        format!("[default: {}]", paper.solver.tolerance),
+        format!("[default: {}]", format!("{:?}", paper.solver.ipalm.schedule).to_lowercase()),
+        "[possible values: sequential, batched]".to_string(),
+        "[possible values: rgb, deep]".to_string(),
+        "[possible values: flex, ndarray, wgpu]".to_string(),
+    ] {
+        assert!(help.contains(&want), "--help lacks `{want}`:\n{help}");
+    }
+}
+
+/// The backends compiled into this build that can run here, the reference first.
+fn compiled_backends() -> Vec<Backend> {
+    let reference = common::reference_backend();
+    let usable = |&b: &Backend| {
+        b != Backend::Wgpu
+            || common::wgpu_unavailable()
+                .inspect(|why| eprintln!("skipped on wgpu: {why}"))
+                .is_none()
+    };
+    let others = Backend::compiled().into_iter().filter(|&b| b != reference);
+    std::iter::once(reference)
+        .chain(others.filter(usable))
+        .collect()
+}
+
+/// Backend parity end to end: the tiny demo (2 levels × 3 sweeps) on every compiled backend
+/// ends with the reference backend's energy (1e-4 relative) and deformations (1e-3 px).
+/// Float32 rounding differs between backends, and a backtracking decision taken on a
+/// near-tie could amplify it; these tolerances leave room for that and still catch a wrong op.
+#[test]
+fn every_backend_gives_the_same_morph() {
+    let dir = scratch("backends");
+    let run = |backend: Backend| {
+        let out = dir.join(backend.name());
+        deepmorph()
+            .args(["demo", "--size", "32", "-q", "-o"])
+            .arg(&out)
+            .args(&TINY[..6])
+            .args(["--backend", backend.name()])
+            .assert()
+            .success();
+        let csv = std::fs::read_to_string(out.join("energy.csv")).unwrap();
+        let energy = EnergyLog::from_csv(&csv)
+            .unwrap()
+            .records
+            .last()
+            .unwrap()
+            .energy;
+        let (_, phi) = load_deformations(&out).unwrap();
+        (energy, phi)
+    };
+    let backends = compiled_backends();
+    let (e_ref, phi_ref) = run(backends[0]);
+    for &backend in &backends[1..] {
+        let (e, phi) = run(backend);
+        let rel = (e - e_ref).abs() / e_ref;
+        assert!(
+            rel <= 1e-4,
+            "{backend}: E = {e:e}, {} gives {e_ref:e} (relative {rel:.1e})",
+            backends[0]
+        );
+        let worst = phi
+            .iter()
+            .zip(&phi_ref)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(
+            worst <= 1e-3,
+            "{backend}: deformations differ from {} by up to {worst:e} px",
+            backends[0]
+        );
+        eprintln!("{backend}: |ΔE|/E = {rel:.1e}, max |Δφ| = {worst:.1e} px");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `--backend wgpu` on a machine without a usable driver: one clear line naming what to
+/// install, exit status 1, no panic. The machine's drivers are hidden from this one process:
+/// every Vulkan driver through the loader's selection filter, and Mesa's GL through a
+/// nonexistent EGL vendor file (wgpu falls back to GL when Vulkan has nothing).
+#[cfg(all(feature = "wgpu", target_os = "linux"))]
+#[test]
+fn wgpu_without_a_driver_is_a_clear_error() {
+    let dir = scratch("nodriver");
+    let err = fails(
+        deepmorph()
+            .args(["demo", "--size", "32", "-q", "-o"])
+            .arg(dir.join("out"))
+            .args(&TINY[..6])
+            .args(["--backend", "wgpu"])
+            .env("VK_LOADER_DRIVERS_SELECT", "no-such-driver*")
+            .env("__EGL_VENDOR_LIBRARY_FILENAMES", dir.join("none.json")),
+    );
+    assert!(
+        err.contains("apt-get install mesa-vulkan-drivers libvulkan1"),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn deep_model_options_are_checked_before_any_work() {
+    let dir = scratch("deep-bad");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 32, 32, 0.4, 0.4);
+    write_image(&b, 32, 32, 0.6, 0.6);
+    let junk = dir.join("junk.onnx");
+    std::fs::write(&junk, b"not a network").unwrap();
+    let run = |extra: &[&str]| {
+        let mut cmd = deepmorph();
+        cmd.args(["morph", a.to_str().unwrap(), b.to_str().unwrap(), "-o"])
+            .arg(dir.join("out"))
+            .args(["-K", "3", "--sweeps", "3"])
+            .args(extra);
+        fails(&mut cmd)
+    };
+    let msg = run(&["--model", "deep"]);
+    assert!(msg.contains("--vgg19 FILE"), "{msg}");
+    let msg = run(&["--model", "deep", "--vgg19", "absent.onnx"]);
+    assert!(
+        msg.contains("absent.onnx") && msg.matches("os error").count() == 1,
+        "{msg}"
+    );
+    let msg = run(&["--model", "deep", "--vgg19", junk.to_str().unwrap()]);
+    assert!(
+        msg.contains("junk.onnx") && msg.contains("not a readable ONNX model"),
+        "{msg}"
+    );
+    let msg = run(&["--vgg19", junk.to_str().unwrap()]);
+    assert!(msg.contains("only by --model deep"), "{msg}");
+    let msg = run(&[
+        "--model",
+        "deep",
+        "--vgg19",
+        junk.to_str().unwrap(),
+        "--levels",
+        "6",
+    ]);
+    assert!(msg.contains("at most 5"), "{msg}");
+    let msg = run(&[
+        "--model",
+        "deep",
+        "--vgg19",
+        junk.to_str().unwrap(),
+        "--size",
+        "40x40",
+    ]);
+    assert!(msg.contains("multiples of 16"), "{msg}");
+    // Refused before allocating when the estimate exceeds the limit.
+    let msg = run(&["--max-memory", "0.01"]);
+    assert!(
+        msg.contains("needs about") && msg.contains("--max-memory is 0.0 GiB"),
+        "{msg}"
+    );
+    let msg = run(&["--max-memory", "-1"]);
+    assert!(msg.contains("invalid --max-memory -1"), "{msg}");
+    assert!(!dir.join("out").join("frame_00.png").exists());
+    std::fs::remove_dir_all(dir).ok();
+}
+
+#[test]
+fn deep_morph_with_the_stand_in_weights() {
+    let Some(vgg19) = common::stand_in_vgg19() else {
+        return;
+    };
+    let dir = scratch("deep");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 40, 36, 0.4, 0.4);
+    write_image(&b, 40, 36, 0.55, 0.6);
+    let out = dir.join("out");
+    deepmorph()
+        .args(["morph", a.to_str().unwrap(), b.to_str().unwrap(), "-o"])
+        .arg(&out)
+        .args([
+            "-K",
+            "3",
+            "--levels",
+            "2",
+            "--sweeps",
+            "3",
+            "--pre-sweeps",
+            "2",
+            "-q",
+        ])
+        .args(["--model", "deep", "--vgg19"])
+        .arg(&vgg19)
+        .assert()
+        .success();
+    // 40x36 is brought to multiples of 16: 48x32 (rows x columns), nearest by scale.
+    let frame = RgbImage::load(&out.join("frame_00.png")).unwrap();
+    assert_eq!((frame.height() % 16, frame.width() % 16), (0, 0));
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    assert!(config["config"]["deep"]["vgg19"].is_string());
+    assert_eq!(config["config"]["solver"]["params"]["lambda"], 0.002);
+    assert_eq!(config["config"]["deep"]["feature_rms"], 0.1);
+    assert_eq!(config["outcome"]["tap_rms"].as_array().unwrap().len(), 5);
+    // Frame 0 is A at the working size (RGB part / eta, not the eta-scaled channels).
+    let a_work = RgbImage::load(&a)
+        .unwrap()
+        .resized(frame.height(), frame.width());
+    let err = frame
+        .data()
+        .iter()
+        .zip(a_work.data())
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+    assert!(err <= 1.0 / 255.0 + 1e-6, "frame 0 differs from A by {err}");
+    let log =
+        EnergyLog::from_csv(&std::fs::read_to_string(out.join("energy.csv")).unwrap()).unwrap();
+    assert_eq!(log.records.len(), 2 * 4);
+    std::fs::remove_dir_all(dir).ok();
+}

@@ -1,0 +1,194 @@
+//! The deep model end to end on the library: feature vectors per level (SPEC §4), the
+//! feature-only sweeps after a prolongation (SPEC §7), outputs = RGB part / η (SPEC §8), and
+//! SPEC §10's `A = B` invariant. VGG19 here has deterministic He-scaled weights, so no
+//! downloaded or shared file is needed.
+
+use crate::common;
+
+use std::sync::atomic::AtomicBool;
+
+use burn::tensor::{DType, Device, Tensor, TensorData};
+use common::{device, reference_backend, values};
+use deepmorph::features::deep::deep_features;
+use deepmorph::model::feature_model::{DeepConfig, FeatureModel};
+use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
+use deepmorph::solver::observer::{Observer, Phase, SweepEvent};
+use deepmorph::features::vgg::architecture::conv_shapes;
+use deepmorph::features::vgg::weights::ConvWeights;
+use deepmorph::features::vgg::{Vgg19, Vgg19Weights};
+use deepmorph::{EnergyParams, Precision};
+
+fn random_vgg(device: &Device) -> Vgg19 {
+    let mut next = common::uniform(0x2545_f491_4f6c_dd1d);
+    let convs = conv_shapes()
+        .iter()
+        .enumerate()
+        .map(|(i, &[o, c, kh, kw])| {
+            let scale = (6.0 / (c * kh * kw) as f64).sqrt();
+            ConvWeights {
+                source: format!("conv {i}"),
+                shape: vec![o, c, kh, kw],
+                weight: (0..o * c * kh * kw)
+                    .map(|_| (next() * scale) as f32)
+                    .collect(),
+                bias: (0..o).map(|_| (0.05 + 0.05 * next()) as f32).collect(),
+            }
+        })
+        .collect();
+    Vgg19::from_weights(Vgg19Weights { convs }, device).unwrap()
+}
+
+/// A smooth colourful `[1, 3, h, w]` image; `shift` moves its pattern.
+fn image(h: usize, w: usize, shift: f64, device: &Device) -> Tensor<4> {
+    let data: Vec<f64> = (0..3 * h * w)
+        .map(|n| {
+            let (c, i, j) = (n / (h * w), (n / w) % h, n % w);
+            let x = (j as f64 - shift) / w as f64;
+            let y = i as f64 / h as f64;
+            0.5 + 0.4 * ((3.0 + c as f64) * x + 2.0 * y + c as f64).sin() * (4.0 * y).cos()
+        })
+        .collect();
+    Tensor::from_data(TensorData::new(data, [1, 3, h, w]), (device, DType::F32))
+}
+
+#[derive(Default)]
+struct Events(Vec<(usize, Phase, usize, f64)>);
+
+impl Observer for Events {
+    fn sweep(&mut self, e: &SweepEvent<'_>) {
+        assert!(e.energy.is_finite());
+        self.0.push((e.level, e.phase, e.sweep, e.energy));
+    }
+}
+
+fn config(levels: usize, sweeps: usize) -> MultilevelConfig {
+    MultilevelConfig {
+        steps: 3,
+        levels,
+        sweeps,
+        params: EnergyParams::deep(),
+        ..MultilevelConfig::default()
+    }
+}
+
+#[test]
+fn features_are_scaled_to_tau_on_every_level() {
+    let device = device(reference_backend(), Precision::F32, false);
+    let vgg = random_vgg(&device);
+    let (a, b) = (image(32, 48, 0.0, &device), image(32, 48, 3.0, &device));
+    let tau = 0.7;
+    let deep = deep_features(
+        &vgg,
+        a,
+        b,
+        DeepConfig {
+            feature_rms: tau,
+            ..DeepConfig::default()
+        },
+    )
+    .unwrap();
+    for s in 0..5 {
+        let (fa, fb) = deep.maps(s).unwrap();
+        assert_eq!(fa.dims()[2..], [32 >> s, 48 >> s]);
+        let all: Vec<f64> = values(fa).into_iter().chain(values(fb)).collect();
+        let rms = (all.iter().map(|v| v * v).sum::<f64>() / all.len() as f64).sqrt();
+        assert!((rms - tau).abs() < 1e-5 * tau, "tap {s}: rms {rms}");
+        assert!(deep.rms()[s] > 0.0);
+        assert_eq!(
+            deep.layout(s).unwrap().channels(),
+            3 + [64, 128, 256, 512, 512][s]
+        );
+    }
+    let err = deep.layout(5).unwrap_err().to_string();
+    assert!(err.contains("levels") && err.contains("at most 5"), "{err}");
+    let odd = image(24, 40, 0.0, &device);
+    let err = deep_features(&vgg, odd.clone(), odd, DeepConfig::default())
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("multiples of 16"), "{err}");
+}
+
+/// A deep morph of `a` into `b` with `pre_sweeps` feature-only sweeps, on the reference
+/// backend with a random VGG19.
+fn deep_morph(
+    a: &Tensor<4>,
+    b: &Tensor<4>,
+    pre_sweeps: usize,
+    config: MultilevelConfig,
+    observer: &mut dyn Observer,
+) -> Morph {
+    let device = a.device();
+    let vgg = random_vgg(&device);
+    let deep = DeepConfig {
+        pre_sweeps,
+        ..DeepConfig::default()
+    };
+    let model = FeatureModel::Deep(deep_features(&vgg, a.clone(), b.clone(), deep).unwrap());
+    Multilevel::new(config)
+        .unwrap()
+        .run_with(
+            &device,
+            a.clone(),
+            b.clone(),
+            &model,
+            observer,
+            &AtomicBool::new(false),
+        )
+        .unwrap()
+}
+
+#[test]
+fn deep_morph_runs_feature_sweeps_after_prolongation_and_outputs_rgb() {
+    let device = device(reference_backend(), Precision::F32, true);
+    let (a, b) = (image(32, 32, 0.0, &device), image(32, 32, 2.0, &device));
+    let mut events = Events::default();
+    let morph = deep_morph(&a, &b, 3, config(2, 4), &mut events);
+
+    // Level 0: joint sweeps only; level 1: 3 feature-only sweeps, then the joint ones.
+    let phases: Vec<(usize, Phase, usize)> = events.0.iter().map(|e| (e.0, e.1, e.2)).collect();
+    let mut want: Vec<_> = (0..=4).map(|s| (0, Phase::Joint, s)).collect();
+    want.extend((0..=3).map(|s| (1, Phase::Features, s)));
+    want.extend((0..=4).map(|s| (1, Phase::Joint, s)));
+    assert_eq!(phases, want);
+    // Feature-only sweeps fit the re-initialised features to the prolongated φ: E falls.
+    let e = |level, phase, sweep| {
+        events
+            .0
+            .iter()
+            .find(|x| (x.0, x.1, x.2) == (level, phase, sweep))
+            .unwrap()
+            .3
+    };
+    assert!(e(1, Phase::Features, 3) < e(1, Phase::Features, 0));
+    assert_eq!(e(1, Phase::Features, 3), e(1, Phase::Joint, 0));
+
+    // 3 + 64 channels at the finest level (relu1_2); the frames are RGB in [0, 1] again.
+    assert_eq!(morph.state.f[1].dims(), [1, 67, 32, 32]);
+    let images = morph.images();
+    assert_eq!(images[0].dims(), [1, 3, 32, 32]);
+    let diff = |x: Tensor<4>, y: Tensor<4>| values((x - y).abs().max())[0];
+    assert!(diff(images[0].clone(), a) < 1e-5, "u_0 must be A");
+    assert!(diff(images[3].clone(), b) < 1e-5, "u_K must be B");
+    for u in &images {
+        let v = values(u.clone());
+        assert!(v.iter().all(|x| x.is_finite() && (-0.5..1.5).contains(x)));
+    }
+}
+
+#[test]
+fn equal_images_give_zero_energy_and_a_constant_deep_path() {
+    let device = device(reference_backend(), Precision::F32, true);
+    let a = image(32, 32, 0.0, &device);
+    let mut events = Events::default();
+    deep_morph(&a, &a, 2, config(2, 2), &mut events);
+    assert!(events.0.iter().all(|e| e.3.abs() < 1e-9), "{:?}", events.0);
+    // On one level the path stays exactly A (on two, the interior RGB channels start from the
+    // prolongated coarse images, which differ from A by the resampling error, weighted η²).
+    let morph = deep_morph(&a, &a, 2, config(1, 3), &mut ());
+    for u in morph.images() {
+        assert!(values((u - a.clone()).abs().max())[0] < 1e-5);
+    }
+    for phi in morph.state.phi {
+        assert!(values((phi - morph.grid.identity(1)).abs().max())[0] < 1e-5);
+    }
+}

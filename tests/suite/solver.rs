@@ -1,0 +1,306 @@
+//! Whole runs of the RGB solver (SPEC §6, §7, §10) on small inputs, float32 on every
+//! compiled backend: a translated blob is recovered, `A = B` stays constant, every accepted
+//! `φ` is admissible with a finite energy, and with `β = 0` the energy does not increase.
+
+use crate::common;
+
+use std::sync::atomic::AtomicBool;
+
+use burn::tensor::{Device, Tensor};
+use common::{device, values};
+use deepmorph::model::deformation::admissible_each;
+use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
+use deepmorph::solver::observer::{Observer, SweepEvent, Termination};
+use deepmorph::solver::ipalm::{IpalmConfig, Schedule};
+use deepmorph::model::warp::BSpline;
+use deepmorph::{Backend, Grid, Precision};
+
+/// A Gaussian blob of width `width` px centred at `(cy, cx)` on a `n × n` grid, with a
+/// slightly different profile per channel, `[1, 3, n, n]`.
+fn blob(grid: &Grid, cy: f64, cx: f64, width: f64) -> Tensor<4> {
+    let n = grid.height();
+    let values = (0..3 * n * n)
+        .map(|p| {
+            let (c, i, j) = (p / (n * n), (p / n) % n, p % n);
+            let r2 = (i as f64 - cy).powi(2) + (j as f64 - cx).powi(2);
+            0.15 + (0.5 + 0.1 * c as f64) * (-r2 / (2.0 * width * width)).exp()
+        })
+        .collect();
+    grid.tensor(values, [1, 3, n, n])
+}
+
+/// Checks every sweep: admissible deformations, finite energy; records the energies.
+#[derive(Default)]
+struct Watch {
+    energies: Vec<Vec<f64>>,
+    inadmissible: Vec<String>,
+}
+
+impl Observer for Watch {
+    fn sweep(&mut self, e: &SweepEvent<'_>) {
+        if e.sweep == 0 {
+            self.energies.push(Vec::new());
+        }
+        assert!(
+            e.energy.is_finite(),
+            "level {} sweep {}: E = {}",
+            e.level,
+            e.sweep,
+            e.energy
+        );
+        self.energies[e.level].push(e.energy);
+        let phi = Tensor::cat(e.state.phi.clone(), 0);
+        if !admissible_each(e.grid, phi).into_iter().all(|ok| ok) {
+            self.inadmissible
+                .push(format!("level {} sweep {}", e.level, e.sweep));
+        }
+    }
+}
+
+fn run(device: &Device, config: MultilevelConfig, a: Tensor<4>, b: Tensor<4>) -> (Morph, Watch) {
+    let mut watch = Watch::default();
+    let morph = Multilevel::new(config)
+        .unwrap()
+        .run(device, a, b, &mut watch, &AtomicBool::new(false))
+        .unwrap();
+    assert_eq!(morph.termination, Termination::Completed);
+    assert!(
+        watch.inadmissible.is_empty(),
+        "inadmissible φ after {:?}",
+        watch.inadmissible
+    );
+    (morph, watch)
+}
+
+fn small(steps: usize, levels: usize, sweeps: usize) -> MultilevelConfig {
+    MultilevelConfig {
+        steps,
+        levels,
+        sweeps,
+        ..MultilevelConfig::default()
+    }
+}
+
+/// `Φ = φ_K ∘ … ∘ φ_1` by composing displacements with the spline warp:
+/// `Φ_k = Φ_{k−1} + T[φ_k − Id, Φ_{k−1}]`.
+fn composed(grid: &Grid, phi: &[Tensor<4>]) -> Tensor<4> {
+    let bspline = BSpline::new(grid);
+    let id = grid.identity(1);
+    phi.iter().fold(id.clone(), |acc, p| {
+        acc.clone() + bspline.warp(p.clone() - id.clone(), acc)
+    })
+}
+
+fn translated_blob_is_recovered(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let n = 32;
+    let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
+    let (shift, k) = (2.0, 4);
+    let (cy, cx) = (15.5, 14.0);
+    let a = blob(&grid, cy, cx, 3.0);
+    let b = blob(&grid, cy, cx + shift, 3.0);
+    // δ = 0.1 rather than SPEC §9's 1: at δ = 1 the minimiser of this smooth, low-contrast
+    // blob is part transport, part cross-fade (measured: the centre moves 1.54 px of 2), which
+    // is the model's choice, not a solver failure. A stronger data term makes transport the
+    // clearly cheaper explanation, and then the solver must find it.
+    let mut config = small(k, 2, 150);
+    config.params.delta = 0.1;
+    let (morph, _) = run(&device, config, a, b);
+
+    // The displacement of a map near a point: the mean over pixels within 1.5 px of it.
+    let id = values(grid.identity(1));
+    let near = |phi: Tensor<4>, (py, px): (f64, f64)| {
+        let v = values(phi);
+        let (mut sum, mut count) = ((0.0, 0.0), 0.0);
+        for p in 0..n * n {
+            let (i, j) = ((p / n) as f64, (p % n) as f64);
+            if (i - py).hypot(j - px) <= 1.5 {
+                sum.0 += v[p] - id[p];
+                sum.1 += v[n * n + p] - id[n * n + p];
+                count += 1.0;
+            }
+        }
+        (sum.0 / count, sum.1 / count)
+    };
+    // φ_k at the blob's centre in frame k − 1, which lies s (k − 1)/K to the right.
+    let step = shift / k as f64;
+    for (i, phi) in morph.state.phi.iter().enumerate() {
+        let (row, col) = near(phi.clone(), (cy, cx + step * i as f64));
+        assert!(
+            (col - step).abs() < 0.15 && row.abs() < 0.1,
+            "phi_{}: displacement ({row:.3}, {col:.3}) at the blob, want (0, {step})",
+            i + 1
+        );
+    }
+    let (row, col) = near(composed(&morph.grid, &morph.state.phi), (cy, cx));
+    assert!(
+        (col - shift).abs() < 0.25 && row.abs() < 0.25,
+        "the composed map moves the blob's centre by ({row:.3}, {col:.3}), want (0, {shift})"
+    );
+}
+
+fn equal_images_stay_constant(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let a = blob(&grid, 7.0, 9.0, 3.0);
+    // One level: a second one would start from bilinearly prolongated interior frames,
+    // which differ from the finer A by the resampling error (SPEC §7), so E > 0 there.
+    let (morph, watch) = run(&device, small(3, 1, 5), a.clone(), a.clone());
+    for e in watch.energies.iter().flatten() {
+        assert!(e.abs() < 1e-10, "E = {e} for A = B");
+    }
+    let a = values(a);
+    for f in &morph.state.f {
+        let diff = values(f.clone())
+            .iter()
+            .zip(&a)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert!(diff < 1e-5, "a frame moved by {diff} for A = B");
+    }
+    let id = values(morph.grid.identity(1));
+    for phi in &morph.state.phi {
+        let diff = values(phi.clone())
+            .iter()
+            .zip(&id)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert!(diff < 1e-5, "a deformation moved by {diff} for A = B");
+    }
+}
+
+/// SPEC §10: with `β = 0` the energy should not increase (observed, not guaranteed: checked
+/// on smooth inputs with a relative tolerance of 1e-5), here with and without the safeguard.
+fn energy_decreases_without_extrapolation(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(24, 24, &device, Precision::F32.dtype()).unwrap();
+    let a = blob(&grid, 10.0, 9.0, 3.5);
+    let b = blob(&grid, 12.0, 13.0, 4.0);
+    for safeguard in [true, false] {
+        let config = MultilevelConfig {
+            ipalm: IpalmConfig {
+                beta: 0.0,
+                safeguard,
+                ..IpalmConfig::default()
+            },
+            ..small(4, 2, 15)
+        };
+        let (_, watch) = run(&device, config, a.clone(), b.clone());
+        for (level, energies) in watch.energies.iter().enumerate() {
+            for (j, pair) in energies.windows(2).enumerate() {
+                assert!(
+                    pair[1] <= pair[0] * (1.0 + 1e-5),
+                    "safeguard {safeguard}, level {level}: E rose from {} to {} in sweep {}",
+                    pair[0],
+                    pair[1],
+                    j + 1
+                );
+            }
+        }
+    }
+}
+
+fn batched(mut config: MultilevelConfig) -> MultilevelConfig {
+    config.ipalm.schedule = Schedule::Batched;
+    config
+}
+
+/// SPEC §10 for the batched schedule: `A = B` stays constant (and `run` checks that every
+/// accepted `φ` is admissible and every energy finite).
+fn batched_equal_images_stay_constant(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let a = blob(&grid, 7.0, 9.0, 3.0);
+    let (morph, watch) = run(&device, batched(small(4, 1, 5)), a.clone(), a.clone());
+    for e in watch.energies.iter().flatten() {
+        assert!(e.abs() < 1e-10, "E = {e} for A = B");
+    }
+    let a = values(a);
+    for f in &morph.state.f {
+        let diff = values(f.clone())
+            .iter()
+            .zip(&a)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert!(diff < 1e-5, "a frame moved by {diff} for A = B");
+    }
+}
+
+/// SPEC §10 for the batched schedule: with `β = 0` the energy does not increase on smooth
+/// inputs (same tolerance as the sequential test), on two levels, with and without the
+/// safeguard.
+fn batched_energy_decreases_without_extrapolation(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(24, 24, &device, Precision::F32.dtype()).unwrap();
+    let a = blob(&grid, 10.0, 9.0, 3.5);
+    let b = blob(&grid, 12.0, 13.0, 4.0);
+    for safeguard in [true, false] {
+        let config = MultilevelConfig {
+            ipalm: IpalmConfig {
+                beta: 0.0,
+                safeguard,
+                schedule: Schedule::Batched,
+                ..IpalmConfig::default()
+            },
+            ..small(5, 2, 15)
+        };
+        let (_, watch) = run(&device, config, a.clone(), b.clone());
+        for (level, energies) in watch.energies.iter().enumerate() {
+            for (j, pair) in energies.windows(2).enumerate() {
+                assert!(
+                    pair[1] <= pair[0] * (1.0 + 1e-5),
+                    "safeguard {safeguard}, level {level}: E rose from {} to {} in sweep {}",
+                    pair[0],
+                    pair[1],
+                    j + 1
+                );
+            }
+        }
+    }
+}
+
+/// The two schedules are two block orders of one iPALM on one energy: after many sweeps on
+/// a small case they reach the same minimiser (energies within 0.5 %, deformations within
+/// 0.05 px of each other), with extrapolation and safeguard on.
+fn schedules_reach_the_same_minimiser(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(24, 24, &device, Precision::F32.dtype()).unwrap();
+    let a = blob(&grid, 10.0, 9.0, 3.5);
+    let b = blob(&grid, 11.0, 12.0, 3.5);
+    let mut config = small(4, 1, 300);
+    config.params.delta = 0.2;
+    let (sequential, seq_watch) = run(&device, config, a.clone(), b.clone());
+    let (batched_morph, bat_watch) = run(&device, batched(config), a, b);
+    let (e_seq, e_bat) = (
+        *seq_watch.energies[0].last().unwrap(),
+        *bat_watch.energies[0].last().unwrap(),
+    );
+    assert!(
+        (e_seq - e_bat).abs() <= 5e-3 * e_seq,
+        "final energies differ: sequential {e_seq}, batched {e_bat}"
+    );
+    let start = seq_watch.energies[0][0];
+    assert!(e_seq < 0.8 * start, "the case did not move: {start} -> {e_seq}");
+    let gap = values(sequential.state.deformations())
+        .iter()
+        .zip(values(batched_morph.state.deformations()))
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max);
+    assert!(gap < 0.05, "deformations differ by {gap} px");
+}
+
+on_each_backend!(
+    equal_images_stay_constant,
+    energy_decreases_without_extrapolation,
+    batched_equal_images_stay_constant,
+    batched_energy_decreases_without_extrapolation,
+);
+
+// The two long runs (2 × 150 and 2 × 300 sweeps) check what the maths converges to, which
+// does not depend on the backend; wgpu's agreement with the CPU backends over whole runs is
+// `cli::every_backend_gives_the_same_morph` and the golden sweeps. On lavapipe these two
+// took 825 s together on this 2-core machine kind; the whole suite without them takes 270 s.
+mod long_runs {
+    use super::{schedules_reach_the_same_minimiser, translated_blob_is_recovered};
+    on_each_cpu_backend!(translated_blob_is_recovered, schedules_reach_the_same_minimiser);
+}

@@ -1,0 +1,319 @@
+//! The solver's rules of SPEC §6 that decide what happens at the edges of a step: the
+//! inertia restart of the safeguard, giving up without freezing a frame, decisions summed in
+//! float64, the feature blocks' initial estimate, and a NaN that must not lose the run.
+
+use crate::common;
+
+use std::sync::atomic::AtomicBool;
+
+use burn::tensor::Tensor;
+use common::{device, values};
+use deepmorph::model::energy::data::data_term;
+use deepmorph::model::energy::regularizer::regularizer;
+use deepmorph::model::grid::Accumulation;
+use deepmorph::model::layout::FeatureLayout;
+use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
+use deepmorph::solver::observer::{Phase, Termination};
+use deepmorph::solver::backtracking::Backtracking;
+use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, initial_lipschitz};
+use deepmorph::model::warp::BSpline;
+use deepmorph::{Backend, EnergyParams, Grid, Precision};
+
+/// A soft blob centred at `(cy, cx)` on an `n × n` grid, `[1, 3, n, n]`.
+fn blob(grid: &Grid, cy: f64, cx: f64) -> Tensor<4> {
+    let n = grid.height();
+    let values = (0..3 * n * n)
+        .map(|p| {
+            let (c, i, j) = (p / (n * n), (p / n) % n, p % n);
+            let r2 = (i as f64 - cy).powi(2) + (j as f64 - cx).powi(2);
+            0.2 + (0.5 + 0.1 * c as f64) * (-r2 / 18.0).exp()
+        })
+        .collect();
+    grid.tensor(values, [1, 3, n, n])
+}
+
+/// `Id + amplitude · bump` with a smooth bump that vanishes on the boundary, `[1, 2, n, n]`.
+fn bumped(grid: &Grid, amplitude: f64) -> Tensor<4> {
+    let n = grid.height();
+    let pi = std::f64::consts::PI;
+    let bump: Vec<f64> = (0..2 * n * n)
+        .map(|p| {
+            let (axis, i, j) = (p / (n * n), (p / n) % n, p % n);
+            let (x, y) = (i as f64 / (n - 1) as f64, j as f64 / (n - 1) as f64);
+            let edge = i == 0 || j == 0 || i == n - 1 || j == n - 1;
+            let s = if edge { 0.0 } else { (pi * x).sin() * (pi * y).sin() };
+            if axis == 0 { s } else { 0.5 * s }
+        })
+        .collect();
+    grid.identity(1) + grid.tensor(bump, [1, 2, n, n]).mul_scalar(amplitude)
+}
+
+/// The safeguard's local energy `e(φ) = K·R[φ, a] + (K/δ)·D[f_0, f_1, φ]` for `K = 1`.
+fn local_energy(grid: &Grid, params: &EnergyParams, f: &[Tensor<4>], phi: Tensor<4>) -> f64 {
+    let ipalm = Ipalm::new(grid, *params, FeatureLayout::rgb(), IpalmConfig::default()).unwrap();
+    let a = ipalm
+        .path_energy()
+        .anisotropy()
+        .compute(f[1].clone())
+        .reshape([1, grid.height(), grid.width()]);
+    let r = regularizer(phi.clone(), a, params.lambda, params.mu);
+    let d = data_term(&BSpline::new(grid), f[0].clone(), f[1].clone(), phi, 3);
+    values(r + d.mul_scalar(1.0 / params.delta))[0]
+}
+
+/// SPEC §6, safeguard step 1. `φ_1 = Id` with a previous iterate far on the other side, so
+/// that the extrapolated point `φ̃ = Id − β·bump` has a higher local energy than `φ_1`; a
+/// large stored `L` keeps the accepted step next to `φ̃`. Doubling `L` only brings the prox
+/// closer to `φ̃`: before the restart rule all 30 doublings failed and the step was dropped.
+/// Restarted at `φ_1`, the step is accepted and does not raise the local energy.
+fn an_overshooting_extrapolation_is_restarted_not_dropped(backend: Backend) {
+    let device = device(backend, Precision::F64, true);
+    let grid = Grid::new(16, 16, &device, Precision::F64.dtype()).unwrap();
+    let params = EnergyParams::rgb();
+    let f = vec![blob(&grid, 7.0, 7.0), blob(&grid, 7.0, 8.0)];
+    let id = grid.identity(1);
+    let mut state = LevelState::new(f.clone(), vec![id.clone()], vec![1e3], vec![]).unwrap();
+    state.phi_prev = vec![bumped(&grid, 0.8)];
+    let beta = IpalmConfig::default().beta;
+    let extrapolated = id.clone() - (bumped(&grid, 0.8) - id.clone()).mul_scalar(beta);
+    let (e_current, e_extrapolated) = (
+        local_energy(&grid, &params, &f, id.clone()),
+        local_energy(&grid, &params, &f, extrapolated),
+    );
+    assert!(
+        e_extrapolated > 1.5 * e_current,
+        "the case needs e(φ̃) = {e_extrapolated} well above e(φ_1) = {e_current}"
+    );
+
+    let ipalm = Ipalm::new(&grid, params, FeatureLayout::rgb(), IpalmConfig::default()).unwrap();
+    let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
+    let step = &report.deformation[0];
+    assert!(step.restarted, "{step:?}");
+    assert!(!step.dropped, "the restart must rescue the step: {step:?}");
+    let e_new = local_energy(&grid, &params, &f, state.phi[0].clone());
+    assert!(
+        e_new <= e_current,
+        "the restarted step raised e from {e_current} to {e_new}"
+    );
+    let moved = values(state.phi[0].clone() - id)
+        .iter()
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    assert!(moved > 0.0, "the step did not move");
+    // The stored L is the one the backtracking accepted, not a safeguard doubling of it.
+    let ratio = step.lipschitz / (0.9 * 1e3);
+    assert!(
+        (ratio.log2() - ratio.log2().round()).abs() < 1e-9 && ratio <= 2f64.powi(step.trials as i32),
+        "stored L {} is not a backtracking trial value",
+        step.lipschitz
+    );
+    assert_eq!(step.safeguard_doublings, 0, "{step:?}");
+    // φ_prev ← φ_1: the next sweep extrapolates along the restarted step.
+    assert_eq!(values(state.phi_prev[0].clone()), values(grid.identity(1)));
+}
+
+/// SPEC §6, *Giving up*: a step whose backtracking runs out of trials keeps `φ_k` and the `L`
+/// it started from, so the next sweep starts from `0.9·L` again instead of `0.9·L·2^trials`.
+fn an_exhausted_step_keeps_the_estimate_it_started_from(backend: Backend) {
+    let device = device(backend, Precision::F64, true);
+    let grid = Grid::new(16, 16, &device, Precision::F64.dtype()).unwrap();
+    let f = vec![
+        blob(&grid, 7.0, 7.0),
+        blob(&grid, 7.0, 8.5),
+        blob(&grid, 7.5, 9.0),
+    ];
+    let id = grid.identity(1);
+    // Tiny estimates: the first trial's step is huge (inadmissible, or rejected by the
+    // decrease test), and one trial is all the rule allows.
+    let (l_phi, l_f) = (1e-9, 1e-12);
+    let mut state =
+        LevelState::new(f.clone(), vec![id.clone(), id.clone()], vec![l_phi; 2], vec![vec![l_f]])
+            .unwrap();
+    let config = IpalmConfig {
+        backtracking: Backtracking {
+            max_trials: 1,
+            ..Backtracking::default()
+        },
+        ..IpalmConfig::default()
+    };
+    let ipalm = Ipalm::new(&grid, EnergyParams::rgb(), FeatureLayout::rgb(), config).unwrap();
+    let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
+    assert!(report.deformation.iter().all(|s| s.dropped), "{report:?}");
+    assert_eq!(report.deformation_drops(), 2);
+    assert_eq!(report.feature_drops(), 1);
+    assert_eq!(state.l_phi, vec![l_phi; 2]);
+    assert_eq!(state.l_f, vec![vec![l_f]]);
+    for phi in &state.phi {
+        assert_eq!(values(phi.clone()), values(id.clone()), "a dropped φ moved");
+    }
+    assert_eq!(values(state.f[1].clone()), values(f[1].clone()), "a dropped f moved");
+}
+
+/// SPEC §6, "Floating point": decisions between float32 sums that rounding flips, and the
+/// float64 accumulation of [`Grid::decision_sum`] gets right. Two sums that are equal in
+/// exact arithmetic: `n` copies of 0.1 and `n/2` copies of 0.2 (exactly twice 0.1 in
+/// float32), one summand of one of them lowered by one unit in the last place, so exactly
+/// that one is the smaller. Summed in float32 the totals are off by up to 4e-2 relative,
+/// each in its own way: whichever of the two is lowered, one backend or the other decides
+/// "smaller ≤ larger" wrongly; in float64 both are exact.
+fn float64_accumulation_decides_what_float32_rounding_flips(backend: Backend) {
+    let device = device(backend, Precision::F32, false);
+    let grid = Grid::new(256, 256, &device, Precision::F32.dtype()).unwrap();
+    assert_eq!(grid.accumulation(), Accumulation::Float64);
+    let n = 67 * 256 * 256;
+    let (tenth, fifth) = (0.1f32, 0.2f32);
+    let rule = Backtracking::default();
+    let mut flipped = 0;
+    for lower_the_tenths in [true, false] {
+        let mut tenths = vec![f64::from(tenth); n];
+        let mut fifths = vec![f64::from(fifth); n / 2];
+        let exact = n as f64 * f64::from(tenth);
+        let (smaller, larger, exact_smaller) = if lower_the_tenths {
+            let lowered = f32::from_bits(tenth.to_bits() - 1);
+            tenths[12345] = f64::from(lowered);
+            (tenths, fifths, exact - f64::from(tenth - lowered))
+        } else {
+            let lowered = f32::from_bits(fifth.to_bits() - 1);
+            fifths[12345] = f64::from(lowered);
+            (fifths, tenths, exact - f64::from(fifth - lowered))
+        };
+        let tensor = |v: Vec<f64>| -> Tensor<2> {
+            let len = v.len();
+            grid.tensor(v, [len / 256, 256])
+        };
+        let (smaller, larger) = (tensor(smaller), tensor(larger));
+        let sum64 = |t: Tensor<2>| values(grid.decision_sum(t))[0];
+        let (s64, l64) = (sum64(smaller.clone()), sum64(larger.clone()));
+        assert!(
+            (s64 - exact_smaller).abs() <= 1e-12 * exact && (l64 - exact).abs() <= 1e-12 * exact,
+            "float64 accumulation: {s64} vs {exact_smaller}, {l64} vs {exact}"
+        );
+        assert!(rule.accepts(s64, l64, 0.0, 0.0, 1.0, 0.0), "{s64} vs {l64}");
+        assert!(!rule.accepts(l64, s64, 0.0, 0.0, 1.0, 0.0), "{l64} vs {s64}");
+        let sum32 = |t: Tensor<2>| values(t.sum())[0];
+        let (s32, l32) = (sum32(smaller), sum32(larger));
+        let error = (s32 - exact_smaller).abs().max((l32 - exact).abs()) / exact;
+        assert!(error > 1e-5, "float32 sums were accurate here ({error:e} relative)");
+        if !rule.accepts(s32, l32, 0.0, 0.0, 1.0, 0.0) {
+            flipped += 1;
+        }
+    }
+    assert!(flipped >= 1, "float32 sums decided both cases rightly on this backend");
+}
+
+/// SPEC §6: every feature block starts from `L_f = 2K/(δ·C_tot·H·W)` (the η-scaled RGB block
+/// used to start at `η²/(H·W)`, ~40 doublings too low).
+fn feature_blocks_start_from_the_data_curvature(backend: Backend) {
+    let device = device(backend, Precision::F32, false);
+    let grid = Grid::new(32, 48, &device, Precision::F32.dtype()).unwrap();
+    let layout = FeatureLayout::deep(1e-6, 64).unwrap();
+    let (k, delta) = (8, 0.5);
+    let (l_phi, l_f) = initial_lipschitz(&grid, &layout, k, delta);
+    let pixels = (32 * 48) as f64;
+    assert_eq!(l_phi, vec![1.0 / pixels; k]);
+    let want = 2.0 * k as f64 / (delta * 67.0 * pixels);
+    assert_eq!(l_f, vec![vec![want, want]; k - 1]);
+}
+
+/// A NaN in the optimisation stops the morph with [`Termination::NonFinite`] naming level and
+/// sweep, and the state is the last finite iterate (the one after the sweep before).
+fn a_nan_stops_with_the_last_finite_iterate(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let (a, b) = (blob(&grid, 7.0, 6.0), blob(&grid, 8.0, 9.0));
+    let config = MultilevelConfig {
+        steps: 3,
+        levels: 2,
+        sweeps: 4,
+        ..MultilevelConfig::default()
+    };
+    let run = |driver: Multilevel| {
+        driver
+            .run(&device, a.clone(), b.clone(), &mut (), &AtomicBool::new(false))
+            .unwrap()
+    };
+    let failed = run(Multilevel::new(config).unwrap().inject_nonfinite(1, 3));
+    match &failed.termination {
+        Termination::NonFinite {
+            level: 1,
+            sweep: 3,
+            phase: Phase::Joint,
+            what,
+        } => assert!(what.contains("NaN"), "{what}"),
+        other => panic!("expected a non-finite stop at level 1, sweep 3, got {other:?}"),
+    }
+    let frames = values(failed.state.frames());
+    assert!(frames.iter().all(|v| v.is_finite()));
+    // The iterate kept is the one after sweep 2 of level 1: the same run interrupted there.
+    struct StopAfter<'a>(&'a AtomicBool);
+    impl deepmorph::solver::observer::Observer for StopAfter<'_> {
+        fn sweep(&mut self, e: &deepmorph::solver::observer::SweepEvent<'_>) {
+            if e.level == 1 && e.sweep == 2 {
+                self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+            }
+        }
+    }
+    let interrupt = AtomicBool::new(false);
+    let stopped_early = Multilevel::new(config)
+        .unwrap()
+        .run(&device, a.clone(), b.clone(), &mut StopAfter(&interrupt), &interrupt)
+        .unwrap();
+    assert_eq!(
+        stopped_early.termination,
+        Termination::Interrupted { level: 1, sweep: 2 }
+    );
+    let same = |what: &str, got: Tensor<4>, want: Tensor<4>| {
+        common::assert_close(what, &values(got), &values(want), 1e-6, 1e-6)
+    };
+    same("frames", failed.state.frames(), stopped_early.state.frames());
+    same(
+        "deformations",
+        failed.state.deformations(),
+        stopped_early.state.deformations(),
+    );
+}
+
+/// Convergence control: with a tolerance a level stops once `E` decreased by less than that
+/// over the last 10 sweeps, and says so; with 0 every level runs its `J` sweeps.
+fn a_level_stops_when_the_energy_stalls(backend: Backend) {
+    use deepmorph::solver::observer::LevelStop;
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let (a, b) = (blob(&grid, 7.0, 6.0), blob(&grid, 8.0, 9.0));
+    let run = |tolerance: f64| {
+        let config = MultilevelConfig {
+            steps: 3,
+            levels: 2,
+            sweeps: 200,
+            tolerance,
+            ..MultilevelConfig::default()
+        };
+        Multilevel::new(config)
+            .unwrap()
+            .run(&device, a.clone(), b.clone(), &mut (), &AtomicBool::new(false))
+            .unwrap()
+    };
+    let full = run(0.0);
+    assert!(full.levels.iter().all(|l| l.sweeps == 200 && l.stop == LevelStop::Sweeps));
+    let early = run(1e-3);
+    assert_eq!(early.termination, Termination::Completed);
+    assert_eq!(early.levels.len(), 2);
+    for level in &early.levels {
+        assert_eq!(level.stop, LevelStop::Converged, "{level:?}");
+        assert!((11..200).contains(&level.sweeps), "{level:?}");
+    }
+}
+
+on_each_cpu_backend!(
+    a_level_stops_when_the_energy_stalls,
+    an_overshooting_extrapolation_is_restarted_not_dropped,
+    an_exhausted_step_keeps_the_estimate_it_started_from,
+    float64_accumulation_decides_what_float32_rounding_flips,
+    feature_blocks_start_from_the_data_curvature,
+);
+
+/// The non-finite path on every backend, wgpu included.
+mod every_backend {
+    use super::*;
+
+    on_each_backend!(a_nan_stops_with_the_last_finite_iterate);
+}
