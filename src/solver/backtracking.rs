@@ -186,9 +186,84 @@ impl SearchRun {
     }
 }
 
+/// Several independent searches side by side (the batched schedule, one per `k`): each
+/// round tries every undecided search's next `L`, and the caller evaluates all of them in
+/// one stacked tensor operation. Searches that were never started (`None`) stay `None`.
+#[derive(Debug)]
+pub struct Lockstep<T> {
+    runs: Vec<Option<SearchRun>>,
+    found: Vec<Option<Search<T>>>,
+}
+
+impl<T> Lockstep<T> {
+    /// The searches, `None` for a slot with nothing to search.
+    pub fn new(runs: Vec<Option<SearchRun>>) -> Self {
+        let found = runs.iter().map(|_| None).collect();
+        Self { runs, found }
+    }
+
+    /// The `L` each search tries this round (`None` where it is decided or idle), or `None`
+    /// when no search has a trial left.
+    pub fn round(&self) -> Option<Vec<Option<f64>>> {
+        let trials: Vec<Option<f64>> = self
+            .runs
+            .iter()
+            .map(|r| r.as_ref().and_then(SearchRun::next))
+            .collect();
+        trials.iter().any(Option::is_some).then_some(trials)
+    }
+
+    /// Records search `i`'s outcome for the `L` [`round`](Self::round) gave it.
+    pub fn record(&mut self, i: usize, outcome: Trial<T>) {
+        let run = self.runs[i].as_mut().expect("a running search");
+        if let Some(found) = run.record(outcome) {
+            self.found[i] = Some(found);
+            self.runs[i] = None;
+        }
+    }
+
+    /// Every search's result; those that ran out of trials give up.
+    pub fn finish(self) -> Vec<Option<Search<T>>> {
+        self.runs
+            .into_iter()
+            .zip(self.found)
+            .map(|(run, found)| found.or_else(|| run.map(SearchRun::give_up)))
+            .collect()
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lockstep_searches_decide_independently() {
+        let rule = Backtracking {
+            max_trials: 3,
+            ..Backtracking::default()
+        };
+        let runs = vec![Some(SearchRun::new(&rule, 10.0)), None, Some(SearchRun::new(&rule, 1.0))];
+        let mut lockstep = Lockstep::new(runs);
+        let mut rounds = Vec::new();
+        while let Some(trials) = lockstep.round() {
+            rounds.push(trials.clone());
+            // Search 0 accepts its second trial; search 2 never accepts.
+            if let Some(l) = trials[0] {
+                lockstep.record(0, if l > 10.0 { Trial::Accepted(l) } else { Trial::Rejected });
+            }
+            if trials[2].is_some() {
+                lockstep.record(2, Trial::Rejected);
+            }
+        }
+        assert_eq!(rounds.len(), 3);
+        assert_eq!(rounds[1], vec![Some(18.0), None, Some(1.8)]);
+        assert_eq!(rounds[2], vec![None, None, Some(3.6)]);
+        let [a, b, c]: [Option<Search<f64>>; 3] = lockstep.finish().try_into().unwrap();
+        let (a, c) = (a.unwrap(), c.unwrap());
+        assert_eq!((a.accepted, a.lipschitz, a.trials), (Some(18.0), 18.0, 2));
+        assert!(b.is_none());
+        assert_eq!((c.accepted, c.lipschitz, c.trials), (None, 1.0, 3));
+    }
 
     #[test]
     fn decrease_test_and_slack() {

@@ -18,7 +18,7 @@ use crate::error::{Error, Result};
 use crate::model::deformation::{admissible_each, jacobian};
 use crate::model::energy::data::data_term_from_residual;
 use crate::model::energy::regularizer::{regularizer, weighted_density};
-use crate::solver::backtracking::{Search, SearchRun, Trial};
+use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{
     DeformationStep, FeatureStep, Ipalm, LevelState, SweepKind, SweepReport, read_scalars,
 };
@@ -164,18 +164,12 @@ impl Deformations<'_> {
         let bt = ipalm.config.backtracking;
         let slack = ipalm.slack();
         let k = stored.len();
-        let mut runs: Vec<Option<SearchRun>> = (0..k)
-            .map(|i| active[i].then(|| SearchRun::new(&bt, stored[i])))
-            .collect();
-        let mut done: Vec<Option<Search<Tensor<4>>>> = (0..k).map(|_| None).collect();
-        loop {
-            let trial: Vec<Option<f64>> = runs
-                .iter()
-                .map(|r| r.as_ref().and_then(SearchRun::next))
-                .collect();
-            if trial.iter().all(Option::is_none) {
-                break;
-            }
+        let mut searches = Lockstep::new(
+            (0..k)
+                .map(|i| active[i].then(|| SearchRun::new(&bt, stored[i])))
+                .collect(),
+        );
+        while let Some(trial) = searches.round() {
             let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
             let candidates = lin.candidates(&l);
             let d = candidates.clone() - lin.point.clone();
@@ -194,7 +188,7 @@ impl Deformations<'_> {
                 ],
             );
             for i in 0..k {
-                let (Some(l), Some(run)) = (trial[i], runs[i].as_mut()) else {
+                let Some(l) = trial[i] else {
                     continue;
                 };
                 let outcome = if !(v[i] > 0.0) {
@@ -205,18 +199,10 @@ impl Deformations<'_> {
                 } else {
                     Trial::Rejected
                 };
-                if let Some(found) = run.record(outcome) {
-                    done[i] = Some(found);
-                    runs[i] = None;
-                }
+                searches.record(i, outcome);
             }
         }
-        for (i, run) in runs.into_iter().enumerate() {
-            if let Some(run) = run {
-                done[i] = Some(run.give_up());
-            }
-        }
-        Ok(done)
+        Ok(searches.finish())
     }
 }
 
@@ -501,25 +487,18 @@ impl Ipalm {
                 });
             }
             let slack = self.slack();
-            let mut runs: Vec<Option<SearchRun>> = ks
-                .iter()
-                .map(|&j| Some(SearchRun::new(&bt, state.l_f[j - 1][b])))
-                .collect();
-            let mut found: Vec<Option<Search<Tensor<4>>>> = (0..n).map(|_| None).collect();
-            loop {
-                let trial: Vec<Option<f64>> = runs
-                    .iter()
-                    .map(|r| r.as_ref().and_then(SearchRun::next))
-                    .collect();
-                if trial.iter().all(Option::is_none) {
-                    break;
-                }
+            let mut searches = Lockstep::new(
+                ks.iter()
+                    .map(|&j| Some(SearchRun::new(&bt, state.l_f[j - 1][b])))
+                    .collect(),
+            );
+            while let Some(trial) = searches.round() {
                 let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
                 let inverse = per_item(l.iter().map(|l| 1.0 / l).collect());
                 let candidates = x_tilde.clone() - grad.clone() * inverse;
                 let q_new = read_scalars(grid, vec![decision(&residuals(candidates.clone()))]);
                 for i in 0..n {
-                    let (Some(l), Some(run)) = (trial[i], runs[i].as_mut()) else {
+                    let Some(l) = trial[i] else {
                         continue;
                     };
                     let (g2, q0) = (norm2[i], q_tilde[i]);
@@ -529,19 +508,13 @@ impl Ipalm {
                     } else {
                         Trial::Rejected
                     };
-                    if let Some(done) = run.record(outcome) {
-                        found[i] = Some(done);
-                        runs[i] = None;
-                    }
+                    searches.record(i, outcome);
                 }
             }
             let current = f_k.clone().narrow(1, start, len);
             let mut values = Vec::with_capacity(n);
-            for (i, run) in runs.into_iter().enumerate() {
-                let search = match run {
-                    Some(run) => run.give_up(),
-                    None => found[i].take().expect("decided"),
-                };
+            for (i, search) in searches.finish().into_iter().enumerate() {
+                let search = search.expect("every frame searches");
                 records[i].dropped.push(search.accepted.is_none());
                 records[i].lipschitz.push(search.lipschitz);
                 records[i].trials.push(search.trials);
