@@ -23,9 +23,9 @@ use std::time::Duration;
 
 use burn::tensor::{Device, Tensor};
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use deepmorph::backend::Gather;
 use deepmorph::model::energy::path::PathEnergy;
 use deepmorph::model::warp::BSpline;
-use deepmorph::backend::Gather;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 /// The CLI's allocator (see `src/bin/deepmorph/main.rs`), so the figures are the program's.

@@ -21,11 +21,11 @@ use std::time::Duration;
 
 use burn::tensor::Tensor;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
-use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::app::demo::demo_pair;
+use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::model::layout::FeatureLayout;
-use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
 use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind};
+use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 /// The CLI's allocator (see `src/bin/deepmorph/main.rs`), so the figures are the program's.

@@ -57,7 +57,10 @@ fn main() -> Result<()> {
     let args = Args::parse();
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/images/pairs/motorcycle");
     if !dir.join("disparity_a.png").is_file() {
-        println!("skipped: {} is absent (the team's test data)", dir.display());
+        println!(
+            "skipped: {} is absent (the team's test data)",
+            dir.display()
+        );
         return Ok(());
     }
     let mut config = match &args.vgg19 {
@@ -94,6 +97,10 @@ fn main() -> Result<()> {
     let folder = MorphFolder::read(&out, &job.config().backend.device_for(Precision::F32)?)?;
     let metrics = folder.metrics(folder.composed(), Some((&truth, "disparity_a.png")))?;
     print!("{metrics}");
-    println!("solver time {:.1} s; morph in {}", result.seconds, out.display());
+    println!(
+        "solver time {:.1} s; morph in {}",
+        result.seconds,
+        out.display()
+    );
     Ok(())
 }

@@ -124,7 +124,9 @@ pub fn bspline_prefilter_taps25() -> Vec<f64> {
 /// - output: `[N, C, H, W]`
 pub fn separable_adjoint(op: &Separable, y: Tensor<4>) -> Tensor<4> {
     let (rows, cols_t) = op.matrices();
-    rows.swap_dims(2, 3).matmul(y).matmul(cols_t.swap_dims(2, 3))
+    rows.swap_dims(2, 3)
+        .matmul(y)
+        .matmul(cols_t.swap_dims(2, 3))
 }
 
 /// Gaussian smoothing `G_s ∗` with mirror boundary on both axes (SPEC §3).

@@ -319,11 +319,19 @@ mod tests {
         };
         assert_eq!(exact.resolve(1, 1, 8).unwrap(), (48, 40));
         let err = exact.resolve(1, 1, 16).unwrap_err().to_string();
-        assert!(err.contains("40x48") && err.contains("multiples of 16"), "{err}");
+        assert!(
+            err.contains("40x48") && err.contains("multiples of 16"),
+            "{err}"
+        );
         let huge = WorkingSize::Exact {
             height: 16384,
             width: 16384,
         };
-        assert!(huge.resolve(1, 1, 16).unwrap_err().to_string().contains("8192"));
+        assert!(
+            huge.resolve(1, 1, 16)
+                .unwrap_err()
+                .to_string()
+                .contains("8192")
+        );
     }
 }

@@ -20,8 +20,8 @@ use crate::features::vgg::architecture::tap_channels;
 use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
 use crate::io::outputs::{
-    CONFIG, METRICS, contact_sheet, output_names, save_composed, save_deformations,
-    write_frames, write_gif,
+    CONFIG, METRICS, contact_sheet, output_names, save_composed, save_deformations, write_frames,
+    write_gif,
 };
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
@@ -109,9 +109,7 @@ impl MorphJob {
             Inputs::Demo => {
                 let side = match config.size {
                     crate::app::config::WorkingSize::Fit { max_side } => max_side,
-                    crate::app::config::WorkingSize::Exact { height, width } => {
-                        height.max(width)
-                    }
+                    crate::app::config::WorkingSize::Exact { height, width } => height.max(width),
                 };
                 let (h, w) = config.size.resolve(side, side, multiple)?;
                 let estimate = check_memory(h, w)?;
@@ -179,11 +177,19 @@ impl MorphJob {
         let device = self.config.backend.device_for(precision)?.autodiff();
         let (h, w) = self.working_size();
         let grid = Grid::new(h, w, &device, precision.dtype())?;
-        let (u_a, u_b) = (self.images.0.to_tensor(&grid)?, self.images.1.to_tensor(&grid)?);
+        let (u_a, u_b) = (
+            self.images.0.to_tensor(&grid)?,
+            self.images.1.to_tensor(&grid)?,
+        );
         let model = match &self.config.deep {
             Some(deep) => {
                 let vgg = Vgg19::load(&deep.vgg19, &device)?;
-                FeatureModel::Deep(deep_features(&vgg, u_a.clone(), u_b.clone(), deep.features)?)
+                FeatureModel::Deep(deep_features(
+                    &vgg,
+                    u_a.clone(),
+                    u_b.clone(),
+                    deep.features,
+                )?)
             }
             None => FeatureModel::Rgb,
         };
@@ -251,7 +257,12 @@ impl MorphResult {
     pub fn write(&self, job: &MorphJob, dir: &Path) -> Result<Metrics> {
         let k = job.config.solver.steps;
         write_frames(dir, &self.frames)?;
-        write_gif(&dir.join("morph.gif"), &self.frames, job.config.pingpong, 3.0)?;
+        write_gif(
+            &dir.join("morph.gif"),
+            &self.frames,
+            job.config.pingpong,
+            3.0,
+        )?;
         let deformations = self.morph.state.deformations();
         let displacement = deformations.clone() - self.morph.grid.identity(k);
         let sheet = contact_sheet(&self.frames, self.morph.anisotropy.clone(), displacement)?;

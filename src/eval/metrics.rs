@@ -6,12 +6,12 @@
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::model::deformation::jacobian;
 use crate::error::Result;
-use crate::model::grid::Grid;
-use crate::model::grid::host_values;
 use crate::io::energy_log::EnergyRecord;
 use crate::io::truth::{Correspondence, EndpointError};
+use crate::model::deformation::jacobian;
+use crate::model::grid::Grid;
+use crate::model::grid::host_values;
 use crate::model::warp::BSpline;
 
 /// The composed map `Φ = φ_N ∘ … ∘ φ_1`, i.e. `Φ(x) = φ_N(…φ_1(x))`: with

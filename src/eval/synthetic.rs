@@ -14,11 +14,11 @@ use std::str::FromStr;
 use burn::tensor::Device;
 
 use crate::backend::Precision;
-use crate::model::deformation::is_admissible;
 use crate::error::{Error, Result};
-use crate::model::grid::Grid;
 use crate::io::images::RgbImage;
 use crate::io::truth::Correspondence;
+use crate::model::deformation::is_admissible;
+use crate::model::grid::Grid;
 use crate::model::warp::BSpline;
 
 /// The kind of synthetic deformation.

@@ -172,4 +172,3 @@ impl Observer for EnergyLog {
         });
     }
 }
-

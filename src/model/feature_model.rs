@@ -46,7 +46,11 @@ impl DeepConfig {
         positive("eta", self.eta)?;
         positive("feature-rms", self.feature_rms)?;
         if self.pre_sweeps > 1_000_000 {
-            return Err(Error::invalid("pre-sweeps", self.pre_sweeps, "at most 1000000"));
+            return Err(Error::invalid(
+                "pre-sweeps",
+                self.pre_sweeps,
+                "at most 1000000",
+            ));
         }
         Ok(())
     }
@@ -70,7 +74,11 @@ impl DeepFeatures {
     /// # Errors
     ///
     /// Invalid settings, or maps and RMS values that do not pair up.
-    pub fn new(config: DeepConfig, maps: Vec<(Tensor<4>, Tensor<4>)>, rms: Vec<f64>) -> Result<Self> {
+    pub fn new(
+        config: DeepConfig,
+        maps: Vec<(Tensor<4>, Tensor<4>)>,
+        rms: Vec<f64>,
+    ) -> Result<Self> {
         config.validate()?;
         if maps.is_empty() || maps.len() != rms.len() {
             return Err(Error::Shape {
@@ -168,4 +176,3 @@ impl FeatureModel {
         }
     }
 }
-

@@ -30,7 +30,6 @@ pub enum Accumulation {
     Float32,
 }
 
-
 impl Grid {
     /// A grid of `height × width` pixels.
     ///

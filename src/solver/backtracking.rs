@@ -90,15 +90,7 @@ impl Backtracking {
     /// The sufficient-decrease test of SPEC §6,
     /// `F(x_new) ≤ F(x̃) + ⟨∇F(x̃), x_new − x̃⟩ + L/2 ‖x_new − x̃‖² + slack·|F(x̃)|`.
     /// A non-finite `F(x_new)` never passes.
-    pub fn accepts(
-        &self,
-        new: f64,
-        old: f64,
-        inner: f64,
-        norm2: f64,
-        l: f64,
-        slack: f64,
-    ) -> bool {
+    pub fn accepts(&self, new: f64, old: f64, inner: f64, norm2: f64, l: f64, slack: f64) -> bool {
         new.is_finite() && new <= old + inner + 0.5 * l * norm2 + slack * old.abs()
     }
 
@@ -242,14 +234,25 @@ mod tests {
             max_trials: 3,
             ..Backtracking::default()
         };
-        let runs = vec![Some(SearchRun::new(&rule, 10.0)), None, Some(SearchRun::new(&rule, 1.0))];
+        let runs = vec![
+            Some(SearchRun::new(&rule, 10.0)),
+            None,
+            Some(SearchRun::new(&rule, 1.0)),
+        ];
         let mut lockstep = Lockstep::new(runs);
         let mut rounds = Vec::new();
         while let Some(trials) = lockstep.round() {
             rounds.push(trials.clone());
             // Search 0 accepts its second trial; search 2 never accepts.
             if let Some(l) = trials[0] {
-                lockstep.record(0, if l > 10.0 { Trial::Accepted(l) } else { Trial::Rejected });
+                lockstep.record(
+                    0,
+                    if l > 10.0 {
+                        Trial::Accepted(l)
+                    } else {
+                        Trial::Rejected
+                    },
+                );
             }
             if trials[2].is_some() {
                 lockstep.record(2, Trial::Rejected);
@@ -300,7 +303,10 @@ mod tests {
             .unwrap();
         assert_eq!(tried, vec![9.0, 18.0, 36.0]);
         assert_eq!(found.accepted, Some(36.0));
-        assert_eq!((found.lipschitz, found.trials, found.inadmissible), (36.0, 3, 1));
+        assert_eq!(
+            (found.lipschitz, found.trials, found.inadmissible),
+            (36.0, 3, 1)
+        );
     }
 
     #[test]

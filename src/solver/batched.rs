@@ -87,7 +87,10 @@ impl Deformations<'_> {
     fn local_energies(&self, phi: Tensor<4>) -> Vec<f64> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
-        let residual = ipalm.energy.bspline().interpolate(self.coeffs.clone(), phi.clone())
+        let residual = ipalm
+            .energy
+            .bspline()
+            .interpolate(self.coeffs.clone(), phi.clone())
             - self.before.clone();
         let data_scale = self.steps
             / (ipalm.energy.params().delta
@@ -140,8 +143,7 @@ impl Deformations<'_> {
             self.before.clone(),
             point.clone(),
         );
-        let kappa =
-            self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
+        let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
         Ok(Linearised {
             data: LinearisedData::new(grid, lin, point.clone(), kappa),
             point,
@@ -193,8 +195,14 @@ impl Deformations<'_> {
                 };
                 let outcome = if !(v[i] > 0.0) {
                     Trial::Inadmissible
-                } else if bt.accepts(v[k + i], lin.smooth[i], v[2 * k + i], v[3 * k + i], l, slack)
-                {
+                } else if bt.accepts(
+                    v[k + i],
+                    lin.smooth[i],
+                    v[2 * k + i],
+                    v[3 * k + i],
+                    l,
+                    slack,
+                ) {
                     Trial::Accepted(item(&candidates, i))
                 } else {
                     Trial::Rejected
@@ -434,10 +442,8 @@ impl Ipalm {
         };
         // φ_k is stored at k − 1, φ_{k+1} at k.
         let sampler = bspline.sampler(take(&state.phi, -1));
-        let next_warped = bspline.interpolate(
-            bspline.coefficients(take(&state.f, 1)),
-            take(&state.phi, 0),
-        );
+        let next_warped =
+            bspline.interpolate(bspline.coefficients(take(&state.f, 1)), take(&state.phi, 0));
         let before = take(&state.f, -1);
         let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
         let per_item = |values: Vec<f64>| -> Tensor<4> { grid.tensor(values, [n, 1, 1, 1]) };

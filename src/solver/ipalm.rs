@@ -12,19 +12,19 @@
 
 use burn::tensor::Tensor;
 
+use crate::error::{Error, Result};
 use crate::model::deformation::{is_admissible, jacobian};
 use crate::model::energy::data::data_term_from_residual;
 use crate::model::energy::path::{EnergyValue, PathEnergy};
 use crate::model::energy::regularizer::{regularizer, weighted_density};
-use crate::error::{Error, Result};
-use crate::model::grid::{Accumulation, Grid};
 use crate::model::grid::to_host;
+use crate::model::grid::{Accumulation, Grid};
 use crate::model::layout::FeatureLayout;
-use crate::solver::backtracking::{Backtracking, Search, Trial};
-use crate::solver::prox::{LinearisedData, linearise};
 use crate::model::params::EnergyParams;
 use crate::model::sobel::Sobel;
 use crate::model::warp::Sampler;
+use crate::solver::backtracking::{Backtracking, Search, Trial};
+use crate::solver::prox::{LinearisedData, linearise};
 
 /// The solver's settings beyond the energy (SPEC §6, §9).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -350,10 +350,8 @@ impl DeformationProblem<'_> {
                 * 2.0
                 * ipalm.layout.channels() as f64
                 * grid.pixels() as f64);
-        let e = self.smooth_decision(phi)
-            + grid
-                .decision_sum(residual.square())
-                .mul_scalar(data_scale);
+        let e =
+            self.smooth_decision(phi) + grid.decision_sum(residual.square()).mul_scalar(data_scale);
         to_host(e)[0]
     }
 
@@ -394,8 +392,7 @@ impl DeformationProblem<'_> {
             point.clone(),
         );
         let p = ipalm.energy.params();
-        let kappa =
-            self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
+        let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
         let data = LinearisedData::new(grid, lin, point.clone(), kappa);
         Ok(Linearised {
             point,
@@ -698,8 +695,14 @@ impl Ipalm {
                 let q_new = read_scalars(&self.grid, vec![q_new])[0];
                 // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
                 Ok(
-                    if bt.accepts(q_new, q_tilde, -grad_norm2 / l, grad_norm2 / (l * l), l, slack)
-                    {
+                    if bt.accepts(
+                        q_new,
+                        q_tilde,
+                        -grad_norm2 / l,
+                        grad_norm2 / (l * l),
+                        l,
+                        slack,
+                    ) {
                         Trial::Accepted(candidate)
                     } else {
                         Trial::Rejected

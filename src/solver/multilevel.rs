@@ -116,7 +116,10 @@ fn converged(history: &[f64], tolerance: f64) -> bool {
     if tolerance <= 0.0 || history.len() <= TOLERANCE_WINDOW {
         return false;
     }
-    let (then, now) = (history[history.len() - 1 - TOLERANCE_WINDOW], history[history.len() - 1]);
+    let (then, now) = (
+        history[history.len() - 1 - TOLERANCE_WINDOW],
+        history[history.len() - 1],
+    );
     (then - now) < tolerance * then.abs()
 }
 
@@ -316,32 +319,39 @@ impl Multilevel {
                     });
                 Err(format!("the path energy is {total}{bad}"))
             };
-            let mut report_sweep =
-                |phase: Phase, sweep: usize, report: Option<&SweepReport>, state: &LevelState, numbers: [f64; 3], stop: Option<LevelStop>| {
-                    observer.sweep(&SweepEvent {
-                        level,
-                        levels: sizes.len(),
-                        grid: &grid,
-                        phase,
-                        sweep,
-                        sweeps: match phase {
-                            Phase::Features => model.pre_sweeps(),
-                            Phase::Joint => cfg.sweeps,
-                        },
-                        energy: numbers[0],
-                        regularizer: numbers[1],
-                        data: numbers[2],
-                        report,
-                        state,
-                        seconds: started.elapsed().as_secs_f64(),
-                        stop,
-                    });
-                };
+            let mut report_sweep = |phase: Phase,
+                                    sweep: usize,
+                                    report: Option<&SweepReport>,
+                                    state: &LevelState,
+                                    numbers: [f64; 3],
+                                    stop: Option<LevelStop>| {
+                observer.sweep(&SweepEvent {
+                    level,
+                    levels: sizes.len(),
+                    grid: &grid,
+                    phase,
+                    sweep,
+                    sweeps: match phase {
+                        Phase::Features => model.pre_sweeps(),
+                        Phase::Joint => cfg.sweeps,
+                    },
+                    energy: numbers[0],
+                    regularizer: numbers[1],
+                    data: numbers[2],
+                    report,
+                    state,
+                    seconds: started.elapsed().as_secs_f64(),
+                    stop,
+                });
+            };
             // SPEC §7: after a prolongation the deep model first fits the features to the
             // prolongated deformations (pointless on the first level, where the convex
             // combination is already optimal for φ = Id).
             let pre = if prolongated { model.pre_sweeps() } else { 0 };
-            let phases = [(Phase::Features, pre, SweepKind::FeaturesOnly), (Phase::Joint, cfg.sweeps, SweepKind::Joint)];
+            let phases = [
+                (Phase::Features, pre, SweepKind::FeaturesOnly),
+                (Phase::Joint, cfg.sweeps, SweepKind::Joint),
+            ];
             let mut stopped = None;
             let mut history: Vec<f64> = Vec::new();
             let mut level_stop = LevelStop::Sweeps;
@@ -358,7 +368,12 @@ impl Multilevel {
                         report_sweep(phase, 0, None, &state, numbers, None)
                     }
                     Err(what) => {
-                        stopped = Some(Termination::NonFinite { level, sweep: 0, phase, what });
+                        stopped = Some(Termination::NonFinite {
+                            level,
+                            sweep: 0,
+                            phase,
+                            what,
+                        });
                         break 'phases;
                     }
                 }
@@ -398,7 +413,12 @@ impl Multilevel {
                             state.phi_prev = phi.clone();
                             state.f = f;
                             state.phi = phi;
-                            stopped = Some(Termination::NonFinite { level, sweep, phase, what });
+                            stopped = Some(Termination::NonFinite {
+                                level,
+                                sweep,
+                                phase,
+                                what,
+                            });
                             break 'phases;
                         }
                     }

@@ -164,4 +164,3 @@ impl std::fmt::Display for Termination {
         }
     }
 }
-

@@ -100,9 +100,10 @@ impl LinearisedData {
     /// - `y`: `[N, 2, H, W]`, `l`: `N` values
     /// - output: `[N, 2, H, W]`
     pub fn prox_each(&self, y: Tensor<4>, l: &[f64]) -> Tensor<4> {
-        let t: Tensor<4> = self
-            .grid
-            .tensor(l.iter().map(|l| self.kappa / l).collect(), [l.len(), 1, 1, 1]);
+        let t: Tensor<4> = self.grid.tensor(
+            l.iter().map(|l| self.kappa / l).collect(),
+            [l.len(), 1, 1, 1],
+        );
         self.solve(y, |m| m * t.clone())
     }
 

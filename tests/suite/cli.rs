@@ -9,8 +9,8 @@ use std::path::{Path, PathBuf};
 use assert_cmd::Command;
 use common::fails;
 use deepmorph::Backend;
-use deepmorph::io::images::{RgbImage, write_png};
 use deepmorph::io::energy_log::EnergyLog;
+use deepmorph::io::images::{RgbImage, write_png};
 use deepmorph::io::outputs::load_deformations;
 
 fn scratch(name: &str) -> PathBuf {
@@ -241,7 +241,16 @@ fn a_nonfinite_value_writes_outputs_and_exits_3() {
     let output = deepmorph()
         .args(["demo", "--size", "32", "-o"])
         .arg(&out)
-        .args(["-K", "3", "--levels", "2", "--sweeps", "4", "--backend", "flex"])
+        .args([
+            "-K",
+            "3",
+            "--levels",
+            "2",
+            "--sweeps",
+            "4",
+            "--backend",
+            "flex",
+        ])
         .env("DEEPMORPH_INJECT_NONFINITE", "1:2")
         .output()
         .unwrap();
@@ -260,10 +269,13 @@ fn a_nonfinite_value_writes_outputs_and_exits_3() {
     let config: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
     let termination = config["outcome"]["termination"].as_str().unwrap();
-    assert!(termination.contains("non-finite value at level 1, sweep 2"), "{termination}");
+    assert!(
+        termination.contains("non-finite value at level 1, sweep 2"),
+        "{termination}"
+    );
     // The energy log ends with the last finite sweep.
-    let log = EnergyLog::from_csv(&std::fs::read_to_string(out.join("energy.csv")).unwrap())
-        .unwrap();
+    let log =
+        EnergyLog::from_csv(&std::fs::read_to_string(out.join("energy.csv")).unwrap()).unwrap();
     let last = log.records.last().unwrap();
     assert_eq!((last.level, last.sweep), (1, 1));
     std::fs::remove_dir_all(&dir).unwrap();
@@ -311,7 +323,9 @@ fn a_recorded_config_reproduces_the_run() {
     let dir = scratch("reproduce");
     let (first, second) = (dir.join("first"), dir.join("second"));
     deepmorph()
-        .args(["demo", "--size", "32", "-q", "--delta", "0.5", "--beta", "0.5", "-o"])
+        .args([
+            "demo", "--size", "32", "-q", "--delta", "0.5", "--beta", "0.5", "-o",
+        ])
         .arg(&first)
         .args(TINY)
         .assert()
@@ -326,7 +340,11 @@ fn a_recorded_config_reproduces_the_run() {
     let (shape, a) = load_deformations(&first).unwrap();
     let (shape_b, b) = load_deformations(&second).unwrap();
     assert_eq!(shape, shape_b);
-    let worst = a.iter().zip(&b).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
     assert!(worst <= 1e-6, "deformations differ by {worst} px");
     let read = |d: &Path| -> serde_json::Value {
         serde_json::from_slice(&std::fs::read(d.join("config.json")).unwrap()).unwrap()
@@ -356,13 +374,25 @@ fn help_shows_the_librarys_defaults() {
     use deepmorph::model::feature_model::DeepConfig;
     // `-h`: the one-line form, where clap lists an enum's values as `[possible values: …]`.
     let out = deepmorph().args(["morph", "-h"]).output().unwrap();
-    let help = String::from_utf8_lossy(&out.stdout).split_whitespace().collect::<Vec<_>>().join(" ");
+    let help = String::from_utf8_lossy(&out.stdout)
+        .split_whitespace()
+        .collect::<Vec<_>>()
+        .join(" ");
     let (paper, demo) = (MorphConfig::default(), MorphConfig::demo());
     let (rgb, deep) = (EnergyParams::rgb(), EnergyParams::deep());
     for want in [
-        format!("[default: {}; demo: {}]", paper.solver.steps, demo.solver.steps),
-        format!("[default: {}; demo: {}]", paper.solver.levels, demo.solver.levels),
-        format!("[default: {}; demo: {}]", paper.solver.sweeps, demo.solver.sweeps),
+        format!(
+            "[default: {}; demo: {}]",
+            paper.solver.steps, demo.solver.steps
+        ),
+        format!(
+            "[default: {}; demo: {}]",
+            paper.solver.levels, demo.solver.levels
+        ),
+        format!(
+            "[default: {}; demo: {}]",
+            paper.solver.sweeps, demo.solver.sweeps
+        ),
         format!("[default: {}; deep model: {}]", rgb.lambda, deep.lambda),
         format!("[default: {}; deep model: {}]", rgb.mu, deep.mu),
         format!("[default: {}]", rgb.delta),
@@ -375,7 +405,10 @@ fn help_shows_the_librarys_defaults() {
         format!("[default: {}]", DeepConfig::default().feature_rms),
         format!("[default: {}]", DeepConfig::default().pre_sweeps),
         format!("[default: {}]", paper.solver.tolerance),
-        format!("[default: {}]", format!("{:?}", paper.solver.ipalm.schedule).to_lowercase()),
+        format!(
+            "[default: {}]",
+            format!("{:?}", paper.solver.ipalm.schedule).to_lowercase()
+        ),
         "[possible values: sequential, batched]".to_string(),
         "[possible values: rgb, deep]".to_string(),
         "[possible values: flex, ndarray, wgpu]".to_string(),

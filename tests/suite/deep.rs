@@ -10,12 +10,12 @@ use std::sync::atomic::AtomicBool;
 use burn::tensor::{DType, Device, Tensor, TensorData};
 use common::{device, reference_backend, values};
 use deepmorph::features::deep::deep_features;
-use deepmorph::model::feature_model::{DeepConfig, FeatureModel};
-use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
-use deepmorph::solver::observer::{Observer, Phase, SweepEvent};
 use deepmorph::features::vgg::architecture::conv_shapes;
 use deepmorph::features::vgg::weights::ConvWeights;
 use deepmorph::features::vgg::{Vgg19, Vgg19Weights};
+use deepmorph::model::feature_model::{DeepConfig, FeatureModel};
+use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
+use deepmorph::solver::observer::{Observer, Phase, SweepEvent};
 use deepmorph::{EnergyParams, Precision};
 
 fn random_vgg(device: &Device) -> Vgg19 {

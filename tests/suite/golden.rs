@@ -7,20 +7,20 @@ use crate::common;
 
 use burn::tensor::{DType, Device, Tensor};
 use common::{Golden, assert_close, assert_golden, device, grid_for, tensor, values};
+use deepmorph::check::data_term_gradient;
+use deepmorph::check::density_gradient;
+use deepmorph::check::regularizer_gradient;
+use deepmorph::check::{self, bspline_prefilter_taps25};
+use deepmorph::check::{domain_derivative, gaussian_smoothing};
 use deepmorph::model::deformation::{Jacobian, admissible_each, jacobian};
 use deepmorph::model::energy::anisotropy::Anisotropy;
-use deepmorph::check::{domain_derivative, gaussian_smoothing};
 use deepmorph::model::energy::data::data_term;
-use deepmorph::check::data_term_gradient;
 use deepmorph::model::energy::density::density;
-use deepmorph::check::density_gradient;
 use deepmorph::model::energy::path::PathEnergy;
 use deepmorph::model::energy::regularizer::regularizer;
-use deepmorph::check::regularizer_gradient;
 use deepmorph::model::resample::{Resize, prolongate_deformation};
 use deepmorph::model::separable::Separable;
 use deepmorph::model::sobel::Sobel;
-use deepmorph::check::{self, bspline_prefilter_taps25};
 use deepmorph::model::stencil::{Matrix, bspline_prefilter, gaussian_taps, mirror_index};
 use deepmorph::model::warp::BSpline;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
@@ -142,7 +142,10 @@ fn check_warp(case: &Case, with_identity: bool) {
 
     // Hand-derived: Pᵀ Bᵀ w for f, and Σ_c w_c ∂_p T_c with β' for φ.
     let (f, phi) = (f.detach(), phi.detach());
-    let hand_f = check::coefficients_adjoint(&bspline, check::interpolate_adjoint(&bspline, w.clone(), phi.clone()));
+    let hand_f = check::coefficients_adjoint(
+        &bspline,
+        check::interpolate_adjoint(&bspline, w.clone(), phi.clone()),
+    );
     case.check("grad_f", hand_f);
     let (d0, d1) = check::interpolate_position_derivative(&bspline, bspline.coefficients(f), phi);
     let along = |d: Tensor<4>| (d * w.clone()).sum_dim(1);

@@ -9,12 +9,12 @@ use common::{Golden, assert_close, assert_golden, device, grid_for, tensor, valu
 use std::sync::atomic::AtomicBool;
 
 use deepmorph::model::layout::FeatureLayout;
-use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
-use deepmorph::solver::observer::{Observer, SweepEvent, Termination};
-use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport};
-use deepmorph::solver::prox::{LinearisedData, linearise};
 use deepmorph::model::sobel::Sobel;
 use deepmorph::model::warp::BSpline;
+use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport};
+use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
+use deepmorph::solver::observer::{Observer, SweepEvent, Termination};
+use deepmorph::solver::prox::{LinearisedData, linearise};
 use deepmorph::{Backend, EnergyParams, Precision};
 
 const F32: DType = DType::F32;

@@ -17,15 +17,15 @@ use crate::common;
 
 use burn::tensor::{DType, Tensor};
 use common::{Rng, assert_close, device, values};
+use deepmorph::backend::Gather;
+use deepmorph::check::data_term_gradient;
+use deepmorph::check::density_gradient;
+use deepmorph::check::regularizer_gradient;
 use deepmorph::model::deformation::{Jacobian, admissible_each};
 use deepmorph::model::energy::data::data_term;
-use deepmorph::check::data_term_gradient;
 use deepmorph::model::energy::density::density;
-use deepmorph::check::density_gradient;
 use deepmorph::model::energy::path::PathEnergy;
 use deepmorph::model::energy::regularizer::regularizer;
-use deepmorph::check::regularizer_gradient;
-use deepmorph::backend::Gather;
 use deepmorph::model::warp::BSpline;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 

@@ -42,7 +42,12 @@ fn modules_import_only_from_lower_layers() {
     let mut checked = 0;
     for file in files {
         let relative = file.strip_prefix(&src).unwrap();
-        let first = relative.components().next().unwrap().as_os_str().to_string_lossy();
+        let first = relative
+            .components()
+            .next()
+            .unwrap()
+            .as_os_str()
+            .to_string_lossy();
         let own = first.trim_end_matches(".rs").to_string();
         if own == "bin" || own == "lib" {
             continue; // the program uses the library's public API; lib.rs lists the modules
@@ -83,6 +88,13 @@ fn modules_import_only_from_lower_layers() {
             }
         }
     }
-    assert!(checked > 50, "only {checked} imports found: is the scan broken?");
-    assert!(violations.is_empty(), "imports against the layering:\n{}", violations.join("\n"));
+    assert!(
+        checked > 50,
+        "only {checked} imports found: is the scan broken?"
+    );
+    assert!(
+        violations.is_empty(),
+        "imports against the layering:\n{}",
+        violations.join("\n")
+    );
 }

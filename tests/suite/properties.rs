@@ -6,9 +6,9 @@ use crate::common;
 
 use burn::tensor::{Device, Tensor};
 use common::{Rng, assert_close, device, values};
+use deepmorph::check::density_gradient;
 use deepmorph::model::deformation::{admissible_each, jacobian};
 use deepmorph::model::energy::density::density;
-use deepmorph::check::density_gradient;
 use deepmorph::model::energy::path::PathEnergy;
 use deepmorph::model::energy::regularizer::regularizer;
 use deepmorph::model::resample::prolongate_deformation;

@@ -9,10 +9,10 @@ use std::sync::atomic::AtomicBool;
 use burn::tensor::{Device, Tensor};
 use common::{device, values};
 use deepmorph::model::deformation::admissible_each;
+use deepmorph::model::warp::BSpline;
+use deepmorph::solver::ipalm::{IpalmConfig, Schedule};
 use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
 use deepmorph::solver::observer::{Observer, SweepEvent, Termination};
-use deepmorph::solver::ipalm::{IpalmConfig, Schedule};
-use deepmorph::model::warp::BSpline;
 use deepmorph::{Backend, Grid, Precision};
 
 /// A Gaussian blob of width `width` px centred at `(cy, cx)` on a `n × n` grid, with a
@@ -280,7 +280,10 @@ fn schedules_reach_the_same_minimiser(backend: Backend) {
         "final energies differ: sequential {e_seq}, batched {e_bat}"
     );
     let start = seq_watch.energies[0][0];
-    assert!(e_seq < 0.8 * start, "the case did not move: {start} -> {e_seq}");
+    assert!(
+        e_seq < 0.8 * start,
+        "the case did not move: {start} -> {e_seq}"
+    );
     let gap = values(sequential.state.deformations())
         .iter()
         .zip(values(batched_morph.state.deformations()))
@@ -302,5 +305,8 @@ on_each_backend!(
 // took 825 s together on this 2-core machine kind; the whole suite without them takes 270 s.
 mod long_runs {
     use super::{schedules_reach_the_same_minimiser, translated_blob_is_recovered};
-    on_each_cpu_backend!(translated_blob_is_recovered, schedules_reach_the_same_minimiser);
+    on_each_cpu_backend!(
+        translated_blob_is_recovered,
+        schedules_reach_the_same_minimiser
+    );
 }

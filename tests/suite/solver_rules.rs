@@ -12,11 +12,11 @@ use deepmorph::model::energy::data::data_term;
 use deepmorph::model::energy::regularizer::regularizer;
 use deepmorph::model::grid::Accumulation;
 use deepmorph::model::layout::FeatureLayout;
-use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
-use deepmorph::solver::observer::{Phase, Termination};
+use deepmorph::model::warp::BSpline;
 use deepmorph::solver::backtracking::Backtracking;
 use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, initial_lipschitz};
-use deepmorph::model::warp::BSpline;
+use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
+use deepmorph::solver::observer::{Phase, Termination};
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 /// A soft blob centred at `(cy, cx)` on an `n × n` grid, `[1, 3, n, n]`.
@@ -41,7 +41,11 @@ fn bumped(grid: &Grid, amplitude: f64) -> Tensor<4> {
             let (axis, i, j) = (p / (n * n), (p / n) % n, p % n);
             let (x, y) = (i as f64 / (n - 1) as f64, j as f64 / (n - 1) as f64);
             let edge = i == 0 || j == 0 || i == n - 1 || j == n - 1;
-            let s = if edge { 0.0 } else { (pi * x).sin() * (pi * y).sin() };
+            let s = if edge {
+                0.0
+            } else {
+                (pi * x).sin() * (pi * y).sin()
+            };
             if axis == 0 { s } else { 0.5 * s }
         })
         .collect();
@@ -102,7 +106,8 @@ fn an_overshooting_extrapolation_is_restarted_not_dropped(backend: Backend) {
     // The stored L is the one the backtracking accepted, not a safeguard doubling of it.
     let ratio = step.lipschitz / (0.9 * 1e3);
     assert!(
-        (ratio.log2() - ratio.log2().round()).abs() < 1e-9 && ratio <= 2f64.powi(step.trials as i32),
+        (ratio.log2() - ratio.log2().round()).abs() < 1e-9
+            && ratio <= 2f64.powi(step.trials as i32),
         "stored L {} is not a backtracking trial value",
         step.lipschitz
     );
@@ -125,9 +130,13 @@ fn an_exhausted_step_keeps_the_estimate_it_started_from(backend: Backend) {
     // Tiny estimates: the first trial's step is huge (inadmissible, or rejected by the
     // decrease test), and one trial is all the rule allows.
     let (l_phi, l_f) = (1e-9, 1e-12);
-    let mut state =
-        LevelState::new(f.clone(), vec![id.clone(), id.clone()], vec![l_phi; 2], vec![vec![l_f]])
-            .unwrap();
+    let mut state = LevelState::new(
+        f.clone(),
+        vec![id.clone(), id.clone()],
+        vec![l_phi; 2],
+        vec![vec![l_f]],
+    )
+    .unwrap();
     let config = IpalmConfig {
         backtracking: Backtracking {
             max_trials: 1,
@@ -145,7 +154,11 @@ fn an_exhausted_step_keeps_the_estimate_it_started_from(backend: Backend) {
     for phi in &state.phi {
         assert_eq!(values(phi.clone()), values(id.clone()), "a dropped φ moved");
     }
-    assert_eq!(values(state.f[1].clone()), values(f[1].clone()), "a dropped f moved");
+    assert_eq!(
+        values(state.f[1].clone()),
+        values(f[1].clone()),
+        "a dropped f moved"
+    );
 }
 
 /// SPEC §6, "Floating point": decisions between float32 sums that rounding flips, and the
@@ -188,16 +201,25 @@ fn float64_accumulation_decides_what_float32_rounding_flips(backend: Backend) {
             "float64 accumulation: {s64} vs {exact_smaller}, {l64} vs {exact}"
         );
         assert!(rule.accepts(s64, l64, 0.0, 0.0, 1.0, 0.0), "{s64} vs {l64}");
-        assert!(!rule.accepts(l64, s64, 0.0, 0.0, 1.0, 0.0), "{l64} vs {s64}");
+        assert!(
+            !rule.accepts(l64, s64, 0.0, 0.0, 1.0, 0.0),
+            "{l64} vs {s64}"
+        );
         let sum32 = |t: Tensor<2>| values(t.sum())[0];
         let (s32, l32) = (sum32(smaller), sum32(larger));
         let error = (s32 - exact_smaller).abs().max((l32 - exact).abs()) / exact;
-        assert!(error > 1e-5, "float32 sums were accurate here ({error:e} relative)");
+        assert!(
+            error > 1e-5,
+            "float32 sums were accurate here ({error:e} relative)"
+        );
         if !rule.accepts(s32, l32, 0.0, 0.0, 1.0, 0.0) {
             flipped += 1;
         }
     }
-    assert!(flipped >= 1, "float32 sums decided both cases rightly on this backend");
+    assert!(
+        flipped >= 1,
+        "float32 sums decided both cases rightly on this backend"
+    );
 }
 
 /// SPEC §6: every feature block starts from `L_f = 2K/(δ·C_tot·H·W)` (the η-scaled RGB block
@@ -228,7 +250,13 @@ fn a_nan_stops_with_the_last_finite_iterate(backend: Backend) {
     };
     let run = |driver: Multilevel| {
         driver
-            .run(&device, a.clone(), b.clone(), &mut (), &AtomicBool::new(false))
+            .run(
+                &device,
+                a.clone(),
+                b.clone(),
+                &mut (),
+                &AtomicBool::new(false),
+            )
             .unwrap()
     };
     let failed = run(Multilevel::new(config).unwrap().inject_nonfinite(1, 3));
@@ -255,7 +283,13 @@ fn a_nan_stops_with_the_last_finite_iterate(backend: Backend) {
     let interrupt = AtomicBool::new(false);
     let stopped_early = Multilevel::new(config)
         .unwrap()
-        .run(&device, a.clone(), b.clone(), &mut StopAfter(&interrupt), &interrupt)
+        .run(
+            &device,
+            a.clone(),
+            b.clone(),
+            &mut StopAfter(&interrupt),
+            &interrupt,
+        )
         .unwrap();
     assert_eq!(
         stopped_early.termination,
@@ -264,7 +298,11 @@ fn a_nan_stops_with_the_last_finite_iterate(backend: Backend) {
     let same = |what: &str, got: Tensor<4>, want: Tensor<4>| {
         common::assert_close(what, &values(got), &values(want), 1e-6, 1e-6)
     };
-    same("frames", failed.state.frames(), stopped_early.state.frames());
+    same(
+        "frames",
+        failed.state.frames(),
+        stopped_early.state.frames(),
+    );
     same(
         "deformations",
         failed.state.deformations(),
@@ -289,11 +327,21 @@ fn a_level_stops_when_the_energy_stalls(backend: Backend) {
         };
         Multilevel::new(config)
             .unwrap()
-            .run(&device, a.clone(), b.clone(), &mut (), &AtomicBool::new(false))
+            .run(
+                &device,
+                a.clone(),
+                b.clone(),
+                &mut (),
+                &AtomicBool::new(false),
+            )
             .unwrap()
     };
     let full = run(0.0);
-    assert!(full.levels.iter().all(|l| l.sweeps == 200 && l.stop == LevelStop::Sweeps));
+    assert!(
+        full.levels
+            .iter()
+            .all(|l| l.sweeps == 200 && l.stop == LevelStop::Sweeps)
+    );
     let early = run(1e-3);
     assert_eq!(early.termination, Termination::Completed);
     assert_eq!(early.levels.len(), 2);

@@ -280,7 +280,10 @@ fn safetensors_with_torchvision_keys_load_and_wrong_files_are_named() {
     // Missing convolutions and a missing bias.
     let msg = error(&file(
         "short.safetensors",
-        convs(&architecture::TORCHVISION_INDEX[..10], &vgg19_shapes()[..10]),
+        convs(
+            &architecture::TORCHVISION_INDEX[..10],
+            &vgg19_shapes()[..10],
+        ),
     ));
     assert!(
         msg.contains("only 10 convolutions") && msg.contains("conv4_3"),

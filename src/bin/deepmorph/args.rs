@@ -8,8 +8,8 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 use clap::{Args, Parser, Subcommand};
 use deepmorph::app::config::{DeepModel, Inputs, Model, MorphConfig, RunRecord, WorkingSize};
-use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::eval::synthetic::Field;
+use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::{Backend, EnergyParams};
 
 /// `text [default: value]`.

@@ -50,24 +50,46 @@ fn main() {
 
 fn run(cli: Cli) -> Result<i32> {
     let (config, inputs, run) = match cli.command {
-        Command::Eval { dir, truth, backend, quiet } => return eval(&dir, truth, backend, quiet),
-        Command::Warp { image, field, amount, output, backend } => {
+        Command::Eval {
+            dir,
+            truth,
+            backend,
+            quiet,
+        } => return eval(&dir, truth, backend, quiet),
+        Command::Warp {
+            image,
+            field,
+            amount,
+            output,
+            backend,
+        } => {
             return warp(&image, field, amount, &output, backend);
         }
-        Command::Morph { a, b, size, max_side, run } => {
+        Command::Morph {
+            a,
+            b,
+            size,
+            max_side,
+            run,
+        } => {
             let (mut config, recorded) = run.resolve(MorphConfig::default())?;
             config.size = working_size(size, max_side, config.size);
             let inputs = match (a, b, recorded) {
                 (Some(a), Some(b), _) => Inputs::Files { a, b },
                 (_, _, Some(recorded)) => recorded,
-                _ => anyhow::bail!("morph needs two images A and B (or --config with a run's config.json)"),
+                _ => anyhow::bail!(
+                    "morph needs two images A and B (or --config with a run's config.json)"
+                ),
             };
             (config, inputs, run)
         }
         Command::Demo { size, run } => {
             let (mut config, _) = run.resolve(MorphConfig::demo())?;
             if let Some(side) = size {
-                config.size = deepmorph::app::config::WorkingSize::Exact { height: side, width: side };
+                config.size = deepmorph::app::config::WorkingSize::Exact {
+                    height: side,
+                    width: side,
+                };
             }
             (config, Inputs::Demo, run)
         }
@@ -103,7 +125,11 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
         let solver = &config.solver;
         eprintln!(
             "{}: {model} model, {w}x{h} (WxH), K = {}, {} levels x {} sweeps, {} backend, about {:.1} GiB",
-            if job.inputs() == &Inputs::Demo { "demo" } else { "morph" },
+            if job.inputs() == &Inputs::Demo {
+                "demo"
+            } else {
+                "morph"
+            },
             solver.steps,
             solver.levels,
             solver.sweeps,
@@ -117,7 +143,10 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     let metrics = result.write(&job, &out)?;
     let termination = &result.morph.termination;
     if let Termination::NonFinite { .. } = termination {
-        eprintln!("Error: {termination}; wrote every output from that iterate to {}", out.display());
+        eprintln!(
+            "Error: {termination}; wrote every output from that iterate to {}",
+            out.display()
+        );
         return Ok(EXIT_NONFINITE);
     }
     if !args.quiet {
@@ -161,11 +190,16 @@ fn backend_or_default(backend: Option<Backend>) -> Backend {
 fn eval(dir: &Path, truth: Option<PathBuf>, backend: Option<Backend>, quiet: bool) -> Result<i32> {
     let device = backend_or_default(backend).device_for(Precision::F32)?;
     let folder = MorphFolder::read(dir, &device)?;
-    let truth = truth.map(|path| Correspondence::load(&path).map(|t| (t, path))).transpose()?;
+    let truth = truth
+        .map(|path| Correspondence::load(&path).map(|t| (t, path)))
+        .transpose()?;
     let composed = folder.composed();
     save_composed(dir, composed.clone())?;
     let name = truth.as_ref().map(|(_, path)| path.display().to_string());
-    let metrics = folder.metrics(composed, truth.as_ref().map(|(t, _)| t).zip(name.as_deref()))?;
+    let metrics = folder.metrics(
+        composed,
+        truth.as_ref().map(|(t, _)| t).zip(name.as_deref()),
+    )?;
     write_metrics(dir, &metrics)?;
     if !quiet {
         print!("{metrics}");
@@ -174,7 +208,13 @@ fn eval(dir: &Path, truth: Option<PathBuf>, backend: Option<Backend>, quiet: boo
 }
 
 /// `deepmorph warp`: a synthetic pair with a known correspondence.
-fn warp(image: &Path, field: Field, amount: f64, out: &Path, backend: Option<Backend>) -> Result<i32> {
+fn warp(
+    image: &Path,
+    field: Field,
+    amount: f64,
+    out: &Path,
+    backend: Option<Backend>,
+) -> Result<i32> {
     let input = RgbImage::load(image)?;
     let device = backend_or_default(backend).device_for(Precision::F32)?;
     let (warped, truth) = warped_pair(&input, field, amount, &device)?;

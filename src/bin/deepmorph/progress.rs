@@ -105,9 +105,12 @@ impl Observer for Progress {
                 e.seconds
             );
             if let Some(stop) = e.stop {
-                let peak = deepmorph::app::memory::peak_resident_bytes()
-                    .map_or(String::new(), |p| {
-                        format!("; peak memory so far {:.0} MiB", p as f64 / (1u64 << 20) as f64)
+                let peak =
+                    deepmorph::app::memory::peak_resident_bytes().map_or(String::new(), |p| {
+                        format!(
+                            "; peak memory so far {:.0} MiB",
+                            p as f64 / (1u64 << 20) as f64
+                        )
                     });
                 eprintln!(
                     "level {} done after {} sweeps ({}) at {:.1} s{peak}",

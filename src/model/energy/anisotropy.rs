@@ -67,4 +67,3 @@ impl Anisotropy {
         norm2.mul_scalar(-1.0 / self.xi1).exp().add_scalar(self.xi2)
     }
 }
-

@@ -63,4 +63,3 @@ pub fn data_term_from_residual(residual: Tensor<4>, c_tot: usize) -> Tensor<1> {
         .reshape([n])
         .mul_scalar(scale)
 }
-

@@ -27,4 +27,3 @@ pub fn density(j: &Jacobian, lambda: f64, mu: f64) -> burn::tensor::Tensor<3> {
     .mul_scalar(mu);
     (volume + strain).mask_fill(folded, f64::INFINITY)
 }
-

@@ -2,10 +2,10 @@
 
 use burn::tensor::Tensor;
 
+use crate::error::{Error, Result};
 use crate::model::energy::anisotropy::Anisotropy;
 use crate::model::energy::data::data_term;
 use crate::model::energy::regularizer::regularizer;
-use crate::error::{Error, Result};
 use crate::model::grid::Grid;
 use crate::model::params::EnergyParams;
 use crate::model::warp::BSpline;

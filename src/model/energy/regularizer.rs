@@ -29,4 +29,3 @@ pub fn regularizer(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor
 pub fn weighted_density(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<3> {
     a * density(&jacobian(phi), lambda, mu)
 }
-

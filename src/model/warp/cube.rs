@@ -5,6 +5,7 @@
 //! solves.
 
 use burn::backend::Cube;
+use burn::backend::cubecl::{dtype_to_elem_type, dtype_to_storage_type};
 use burn::backend::ops::FloatTensorOps;
 use burn::tensor::{DType, TensorData};
 use burn_cubecl::cubecl::features::AtomicUsage;
@@ -14,7 +15,6 @@ use burn_cubecl::cubecl::{CubeCount, CubeDim, calculate_cube_count_elemwise};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::empty_device_dtype;
 use burn_cubecl::tensor::CubeTensor;
-use burn::backend::cubecl::{dtype_to_elem_type, dtype_to_storage_type};
 
 use super::op::SplineOps;
 
@@ -82,8 +82,8 @@ fn pick<F: Float>(w: (F, F, F, F), a: u32) -> F {
 
 #[cube(launch)]
 fn sample_kernel<F: Float>(
-    coeffs: &Tensor<F>, // [N, C, H, W]
-    phi: &Tensor<F>,    // [N, 2, H', W']
+    coeffs: &Tensor<F>,  // [N, C, H, W]
+    phi: &Tensor<F>,     // [N, 2, H', W']
     out: &mut Tensor<F>, // [N, C, H', W']
     #[define(F)] _dtype: ElemType,
 ) {
@@ -119,9 +119,9 @@ fn sample_kernel<F: Float>(
 
 #[cube(launch)]
 fn position_grad_kernel<F: Float>(
-    coeffs: &Tensor<F>, // [N, C, H, W]
-    phi: &Tensor<F>,    // [N, 2, H', W']
-    grad: &Tensor<F>,   // [N, C, H', W']
+    coeffs: &Tensor<F>,  // [N, C, H, W]
+    phi: &Tensor<F>,     // [N, 2, H', W']
+    grad: &Tensor<F>,    // [N, C, H', W']
     out: &mut Tensor<F>, // [N, 2, H', W']
     #[define(F)] _dtype: ElemType,
 ) {
@@ -167,8 +167,8 @@ fn position_grad_kernel<F: Float>(
 
 #[cube(launch)]
 fn adjoint_atomic_kernel<F: Float>(
-    grad: &Tensor<F>,           // [N, C, H', W']
-    phi: &Tensor<F>,            // [N, 2, H', W']
+    grad: &Tensor<F>,            // [N, C, H', W']
+    phi: &Tensor<F>,             // [N, 2, H', W']
     out: &mut Tensor<Atomic<F>>, // [N, C, H, W], zeroed
     #[define(F)] _dtype: ElemType,
 ) {

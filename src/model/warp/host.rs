@@ -222,15 +222,7 @@ pub fn prefilter<T: Real>(data: &mut [T], height: usize, width: usize, transpose
             let cols = b * block..((b + 1) * block).min(width);
             // SAFETY: task (p, b) owns columns `cols` of plane `p`; tasks differ in one or the
             // other.
-            unsafe {
-                solve_columns(
-                    Shared(base.get(p * plane)),
-                    width,
-                    height,
-                    cols,
-                    &along_h,
-                )
-            };
+            unsafe { solve_columns(Shared(base.get(p * plane)), width, height, cols, &along_h) };
         });
 }
 
@@ -356,13 +348,7 @@ pub fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
 }
 
 /// `Σ_c g_c ∂T_c/∂p` at every point: the gradient of `⟨g, B(φ) c⟩` w.r.t. `φ`, `[N, 2, H', W']`.
-pub fn sample_position_grad<T: Real>(
-    coeffs: &[T],
-    phi: &[T],
-    grad: &[T],
-    out: &mut [T],
-    d: Dims,
-) {
+pub fn sample_position_grad<T: Real>(coeffs: &[T], phi: &[T], grad: &[T], out: &mut [T], d: Dims) {
     d.check(coeffs.len(), phi, grad.len());
     assert_eq!(out.len(), phi.len(), "position gradient");
     let (points, plane) = (d.points(), d.h * d.w);
@@ -438,10 +424,12 @@ pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
         }
     };
     if parts == 1 {
-        out.par_chunks_mut(plane).enumerate().for_each(|(pl, target)| {
-            target.fill(T::default());
-            scatter(target, pl, 0);
-        });
+        out.par_chunks_mut(plane)
+            .enumerate()
+            .for_each(|(pl, target)| {
+                target.fill(T::default());
+                scatter(target, pl, 0);
+            });
         return;
     }
     let mut partial = vec![T::default(); planes * parts * plane];
@@ -449,16 +437,18 @@ pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
         .par_chunks_mut(plane)
         .enumerate()
         .for_each(|(task, target)| scatter(target, task / parts, task % parts));
-    out.par_chunks_mut(plane).enumerate().for_each(|(pl, target)| {
-        let first = &partial[pl * parts * plane..(pl * parts + 1) * plane];
-        target.copy_from_slice(first);
-        for part in 1..parts {
-            let more = &partial[(pl * parts + part) * plane..(pl * parts + part + 1) * plane];
-            for (t, &m) in target.iter_mut().zip(more) {
-                *t += m;
+    out.par_chunks_mut(plane)
+        .enumerate()
+        .for_each(|(pl, target)| {
+            let first = &partial[pl * parts * plane..(pl * parts + 1) * plane];
+            target.copy_from_slice(first);
+            for part in 1..parts {
+                let more = &partial[(pl * parts + part) * plane..(pl * parts + part + 1) * plane];
+                for (t, &m) in target.iter_mut().zip(more) {
+                    *t += m;
+                }
             }
-        }
-    });
+        });
 }
 
 #[cfg(test)]
@@ -487,7 +477,9 @@ mod tests {
     }
 
     fn ramp(n: usize, seed: f64) -> Vec<f64> {
-        (0..n).map(|i| (i as f64 * 0.37 + seed).sin() + 0.1 * i as f64 % 3.0).collect()
+        (0..n)
+            .map(|i| (i as f64 * 0.37 + seed).sin() + 0.1 * i as f64 % 3.0)
+            .collect()
     }
 
     #[test]
@@ -508,7 +500,10 @@ mod tests {
             prefilter(&mut pt, h, w, true);
             let lhs: f64 = c.iter().zip(&g).map(|(a, b)| a * b).sum();
             let rhs: f64 = f.iter().zip(&pt).map(|(a, b)| a * b).sum();
-            assert!((lhs - rhs).abs() < 1e-10 * lhs.abs().max(1.0), "{lhs} vs {rhs}");
+            assert!(
+                (lhs - rhs).abs() < 1e-10 * lhs.abs().max(1.0),
+                "{lhs} vs {rhs}"
+            );
         }
     }
 
@@ -550,7 +545,11 @@ mod tests {
         let h = 1e-6;
         for i in 0..phi.len() {
             let frac = phi[i] - phi[i].floor();
-            let axis_hi = if (i / (d.ho * d.wo)) % 2 == 0 { 8.0 } else { 10.0 };
+            let axis_hi = if (i / (d.ho * d.wo)) % 2 == 0 {
+                8.0
+            } else {
+                10.0
+            };
             if frac.min(1.0 - frac) < 1e-3 || (phi[i] + h > axis_hi && phi[i] - h < axis_hi) {
                 continue; // a kink of the clamp or of a weight's branch
             }
@@ -558,7 +557,11 @@ mod tests {
             up[i] += h;
             down[i] -= h;
             let fd = (value(&up) - value(&down)) / (2.0 * h);
-            assert!((fd - grad[i]).abs() < 1e-6 * (1.0 + fd.abs()), "φ[{i}]: {fd} vs {}", grad[i]);
+            assert!(
+                (fd - grad[i]).abs() < 1e-6 * (1.0 + fd.abs()),
+                "φ[{i}]: {fd} vs {}",
+                grad[i]
+            );
         }
     }
 

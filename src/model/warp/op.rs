@@ -133,20 +133,36 @@ mod flex {
         };
     }
 
-    fn prefilter_typed<T: Real + burn::tensor::Element>(mut x: TensorData, transpose: bool) -> TensorData {
+    fn prefilter_typed<T: Real + burn::tensor::Element>(
+        mut x: TensorData,
+        transpose: bool,
+    ) -> TensorData {
         let s = shape(&x);
         let (h, w) = (s[s.len() - 2], s[s.len() - 1]);
-        host::prefilter(x.as_mut_slice::<T>().expect("dtype checked"), h, w, transpose);
+        host::prefilter(
+            x.as_mut_slice::<T>().expect("dtype checked"),
+            h,
+            w,
+            transpose,
+        );
         x
     }
 
-    fn sample_typed<T: Real + burn::tensor::Element>(coeffs: TensorData, phi: TensorData, d: Dims) -> TensorData {
+    fn sample_typed<T: Real + burn::tensor::Element>(
+        coeffs: TensorData,
+        phi: TensorData,
+        d: Dims,
+    ) -> TensorData {
         let mut out = vec![T::default(); d.n * d.c * d.ho * d.wo];
         host::sample(slice(&coeffs), slice(&phi), &mut out, d);
         TensorData::new(out, [d.n, d.c, d.ho, d.wo])
     }
 
-    fn adjoint_typed<T: Real + burn::tensor::Element>(grad: TensorData, phi: TensorData, d: Dims) -> TensorData {
+    fn adjoint_typed<T: Real + burn::tensor::Element>(
+        grad: TensorData,
+        phi: TensorData,
+        d: Dims,
+    ) -> TensorData {
         let mut out = vec![T::default(); d.n * d.c * d.h * d.w];
         host::sample_adjoint(slice(&grad), slice(&phi), &mut out, d);
         TensorData::new(out, [d.n, d.c, d.h, d.w])
@@ -199,22 +215,19 @@ mod flex {
         ) -> FlexTensor {
             let (coeffs, phi, grad) = (data(coeffs), data(phi), data(grad));
             let d = dims(&shape(&coeffs), &shape(&phi));
-            FlexTensor::from_data(typed!(
-                coeffs.dtype(),
-                position_typed(coeffs, phi, grad, d)
-            ))
+            FlexTensor::from_data(typed!(coeffs.dtype(), position_typed(coeffs, phi, grad, d)))
         }
     }
 }
 
 mod autodiff {
     use burn::backend::Autodiff;
+    use burn::backend::TensorMetadata;
     use burn::backend::autodiff::checkpoint::base::Checkpointer;
     use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
     use burn::backend::autodiff::grads::Gradients;
     use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
     use burn::backend::tensor::FloatTensor;
-    use burn::backend::TensorMetadata;
 
     use super::SplineOps;
 
@@ -318,7 +331,10 @@ mod autodiff {
         ) -> FloatTensor<Self> {
             let (grad, a) = grad.into_parts();
             let (phi, b) = phi.into_parts();
-            let prep = NotDifferentiable.prepare::<C>([a, b]).compute_bound().stateful();
+            let prep = NotDifferentiable
+                .prepare::<C>([a, b])
+                .compute_bound()
+                .stateful();
             untracked("the spline's adjoint", prep, || {
                 B::spline_sample_adjoint(grad, phi, height, width)
             })

@@ -37,7 +37,8 @@ macro_rules! on_each_backend {
 /// threads little to run on.
 pub fn wgpu_alone() -> std::sync::MutexGuard<'static, ()> {
     static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
-    LOCK.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    LOCK.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// Why the wgpu tests cannot run on this machine (no Vulkan/Metal/DX12 driver), or `None`
