@@ -20,7 +20,7 @@ use anyhow::Result;
 use clap::Parser;
 use deepmorph::Precision;
 use deepmorph::app::config::{Inputs, MorphConfig, WorkingSize};
-use deepmorph::app::job::{MorphJob, prepare_output_dir};
+use deepmorph::app::job::MorphJob;
 use deepmorph::eval::folder::MorphFolder;
 use deepmorph::io::truth::Correspondence;
 
@@ -89,9 +89,10 @@ fn main() -> Result<()> {
         job.config().model(),
         job.config().backend
     );
+    // A previous run of this example is replaced: it is this example's own folder.
+    let folder = job.output_folder(&args.output, true)?;
     let result = job.run(&mut (), &AtomicBool::new(false))?;
-    let out = prepare_output_dir(&args.output, &[], &job.output_names())?;
-    result.write(&job, &out)?;
+    let (_, out) = result.write(&job, folder)?;
 
     let truth = Correspondence::load(&dir.join("disparity_a.png"))?;
     let folder = MorphFolder::read(&out, &job.config().backend.device_for(Precision::F32)?)?;

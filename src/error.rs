@@ -83,6 +83,16 @@ pub enum Error {
         input: std::path::PathBuf,
     },
 
+    /// An output folder that cannot be used: not a folder, holding files of someone else, or
+    /// holding a previous output without `--force`.
+    #[error("the output folder {}: {detail}", path.display())]
+    OutputFolder {
+        /// The folder as given.
+        path: std::path::PathBuf,
+        /// Why it cannot be used, and what to do.
+        detail: String,
+    },
+
     /// A morph would need more memory than it may use.
     #[error(
         "this morph needs about {needed_gib:.1} GiB ({what}) but the {limit_name} is \

@@ -31,14 +31,14 @@
 //! ```no_run
 //! use std::sync::atomic::AtomicBool;
 //! use deepmorph::app::config::{Inputs, MorphConfig};
-//! use deepmorph::app::job::{MorphJob, prepare_output_dir};
+//! use deepmorph::app::job::MorphJob;
 //!
 //! # fn main() -> deepmorph::Result<()> {
 //! let inputs = Inputs::Files { a: "a.png".into(), b: "b.png".into() };
 //! let job = MorphJob::prepare(MorphConfig::default(), inputs)?;
+//! let out = job.output_folder("out".as_ref(), false)?; // checked before the work
 //! let result = job.run(&mut (), &AtomicBool::new(false))?;
-//! let out = prepare_output_dir("out".as_ref(), &[], &job.output_names())?;
-//! let metrics = result.write(&job, &out)?;
+//! let (metrics, path) = result.write(&job, out)?;
 //! # Ok(()) }
 //! ```
 #![warn(missing_docs)]

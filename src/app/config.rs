@@ -281,7 +281,7 @@ impl RunRecord {
     ///
     /// [`Error::Io`] or [`Error::Format`] naming the file.
     pub fn read(path: &Path) -> Result<Self> {
-        let bytes = crate::io::images::read_bytes(path)?;
+        let bytes = crate::io::images::read_bytes(path, 16 << 20, "run record")?;
         serde_json::from_slice(&bytes).map_err(|e| Error::Format {
             path: path.to_path_buf(),
             detail: format!("not a deepmorph run record: {e}"),

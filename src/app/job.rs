@@ -11,7 +11,7 @@ use crate::app::config::{Inputs, MorphConfig, Outcome, RunRecord};
 use crate::app::demo::demo_pair;
 use crate::app::memory;
 use crate::backend::Precision;
-use crate::error::{Error, Result};
+use crate::error::Result;
 use crate::eval::folder::MorphFolder;
 use crate::eval::metrics::Metrics;
 use crate::features::deep::deep_features;
@@ -19,9 +19,10 @@ use crate::features::vgg::Vgg19;
 use crate::features::vgg::architecture::tap_channels;
 use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
+use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{
-    CONFIG, METRICS, contact_sheet, output_names, save_composed, save_deformations, write_frames,
-    write_gif,
+    CONFIG, METRICS, contact_sheet, is_morph_output, output_names, save_composed,
+    save_deformations, write_frames, write_gif,
 };
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
@@ -164,6 +165,18 @@ impl MorphJob {
         output_names(self.config.solver.steps)
     }
 
+    /// Begins the output folder `dir` (see [`OutputFolder::begin`]): before the morph runs,
+    /// so a folder that cannot be used or written is refused before any work. `force`
+    /// allows replacing a previous morph there.
+    ///
+    /// # Errors
+    ///
+    /// The folder holds other files, a previous morph without `force`, an input, or cannot
+    /// be written.
+    pub fn output_folder(&self, dir: &Path, force: bool) -> Result<OutputFolder> {
+        OutputFolder::begin(dir, &self.inputs.files(), is_morph_output, force)
+    }
+
     /// Runs the morph, reporting every sweep to `observer`; stops after the current sweep
     /// when `interrupt` is raised. A NaN in the optimisation is not an error: the result
     /// then holds the last finite iterate and says so in its termination.
@@ -246,15 +259,21 @@ impl MorphResult {
         }
     }
 
-    /// Writes every output of SPEC §8 into `dir` (see [`prepare_output_dir`]): the frames, the
-    /// GIF, the contact sheet, the deformations, the energy log, `config.json`, the composed
-    /// map and `metrics.json`, which is computed from the files just written by the code of
-    /// `deepmorph eval` (so both give the same numbers). Returns those metrics.
+    /// Writes every output of SPEC §8 into `folder` and moves it into place (see
+    /// [`OutputFolder::commit`]): the frames, the GIF, the contact sheet, the deformations,
+    /// the energy log, `config.json`, the composed map and `metrics.json`, which is computed
+    /// from the files just written by the code of `deepmorph eval` (so both give the same
+    /// numbers). Returns those metrics and the folder's path.
     ///
     /// # Errors
     ///
-    /// A file cannot be written.
-    pub fn write(&self, job: &MorphJob, dir: &Path) -> Result<Metrics> {
+    /// A file cannot be written (the folder is then left as it was before the run).
+    pub fn write(&self, job: &MorphJob, folder: OutputFolder) -> Result<(Metrics, PathBuf)> {
+        let metrics = self.write_files(job, folder.path())?;
+        Ok((metrics, folder.commit()?))
+    }
+
+    fn write_files(&self, job: &MorphJob, dir: &Path) -> Result<Metrics> {
         let k = job.config.solver.steps;
         write_frames(dir, &self.frames)?;
         write_gif(
@@ -294,37 +313,4 @@ impl MorphResult {
 pub fn write_metrics(dir: &Path, metrics: &Metrics) -> Result<()> {
     let json = serde_json::to_vec_pretty(metrics).expect("metrics serialise");
     write_atomically(&dir.join(METRICS), |w| w.write_all(&json))
-}
-
-/// Creates the output directory and refuses one whose outputs `names` would overwrite one of
-/// the `inputs`; returns its canonical path.
-///
-/// # Errors
-///
-/// [`Error::Io`] if it cannot be created, [`Error::Overwrite`] if it would overwrite an
-/// input.
-pub fn prepare_output_dir(dir: &Path, inputs: &[&Path], names: &[String]) -> Result<PathBuf> {
-    let io_error = |cause| Error::Io {
-        path: dir.to_path_buf(),
-        cause,
-    };
-    std::fs::create_dir_all(dir).map_err(io_error)?;
-    let out_dir = dir.canonicalize().map_err(io_error)?;
-    for input in inputs {
-        let Ok(input_path) = input.canonicalize() else {
-            continue;
-        };
-        let name = input_path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned());
-        if input_path.parent() == Some(out_dir.as_path())
-            && name.as_ref().is_some_and(|n| names.iter().any(|m| m == n))
-        {
-            return Err(Error::Overwrite {
-                output: dir.to_path_buf(),
-                input: input.to_path_buf(),
-            });
-        }
-    }
-    Ok(out_dir)
 }

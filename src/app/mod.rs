@@ -3,11 +3,13 @@
 //! progress, handles Ctrl-C and maps outcomes to exit codes.
 //!
 //! - [`config`]: the settings of a whole morph, serialisable; `config.json`'s record.
+//! - [`evaluate`]: a finished morph's folder checked and measured (`deepmorph eval`).
 //! - [`job`]: prepare (check, read, size, memory), run, write the outputs.
 //! - [`memory`]: the peak-memory estimate and the refusal of what would not fit.
 //! - [`demo`]: the built-in synthetic pair.
 
 pub mod config;
 pub mod demo;
+pub mod evaluate;
 pub mod job;
 pub mod memory;

@@ -83,7 +83,9 @@ impl MorphFolder {
         };
         let endpoints = (frame(0)?, frame(k)?);
 
-        let csv = String::from_utf8_lossy(&read_bytes(&dir.join("energy.csv"))?).into_owned();
+        let csv =
+            String::from_utf8_lossy(&read_bytes(&dir.join("energy.csv"), 1 << 30, "energy log")?)
+                .into_owned();
         let energy = EnergyLog::from_csv(&csv).map_err(|e| format("energy.csv", e))?;
         Ok(Self {
             steps: k,

@@ -161,38 +161,82 @@ impl RgbImage {
     }
 }
 
-/// The bytes of a file.
+/// The largest side of an input image in pixels (the working size's limit is smaller:
+/// [`crate::app::config::MAX_SIDE`]); a larger one is refused from its header, before decoding.
+pub const MAX_IMAGE_SIDE: u32 = 16384;
+/// The largest image file read.
+pub const MAX_IMAGE_FILE_BYTES: u64 = 1 << 30;
+
+/// The bytes of a file of at most `limit` bytes; `what` names the kind of file for the
+/// message. Reads at most `limit + 1` bytes whatever the file claims to be (a device, a
+/// pipe, a file that grows), so an unexpected file cannot exhaust memory.
 ///
 /// # Errors
 ///
-/// [`Error::Io`] naming the file.
-pub fn read_bytes(path: &Path) -> Result<Vec<u8>> {
-    fs::read(path).map_err(|source| Error::Io {
+/// [`Error::Io`] naming the file; [`Error::Format`] if it holds more than `limit` bytes.
+pub fn read_bytes(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let io_error = |cause| Error::Io {
         path: path.to_path_buf(),
-        cause: source,
-    })
+        cause,
+    };
+    let file = fs::File::open(path).map_err(io_error)?;
+    if file.metadata().is_ok_and(|m| m.is_dir()) {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            detail: format!("is a folder, not a {what}"),
+        });
+    }
+    let mut bytes = Vec::new();
+    file.take(limit.saturating_add(1))
+        .read_to_end(&mut bytes)
+        .map_err(io_error)?;
+    if bytes.len() as u64 > limit {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            detail: format!("more than {limit} bytes, the most a {what} may hold"),
+        });
+    }
+    Ok(bytes)
 }
 
 /// Reads and decodes an image file in any format the `image` crate decodes here, guessing
-/// the format from the contents.
+/// the format from the contents. The file is read whole first (so pipes work too), and the
+/// size in its header is checked against [`MAX_IMAGE_SIDE`] before anything is decoded.
 ///
 /// # Errors
 ///
-/// [`Error::Io`] or [`Error::Image`] naming the file.
+/// [`Error::Io`], [`Error::Format`] (too large) or [`Error::Image`] naming the file.
 pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
-    let io_error = |source| Error::Io {
+    let bytes = read_bytes(path, MAX_IMAGE_FILE_BYTES, "image file")?;
+    let image_error = |cause| Error::Image {
         path: path.to_path_buf(),
-        cause: source,
+        cause,
     };
-    image::ImageReader::open(path)
-        .map_err(io_error)?
-        .with_guessed_format()
-        .map_err(io_error)?
-        .decode()
-        .map_err(|source| Error::Image {
+    let reader = || {
+        image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
+            .with_guessed_format()
+            .expect("reading from memory cannot fail")
+    };
+    let (w, h) = reader().into_dimensions().map_err(image_error)?;
+    if w.max(h) > MAX_IMAGE_SIDE {
+        return Err(Error::Format {
             path: path.to_path_buf(),
-            cause: source,
-        })
+            detail: format!(
+                "a {w}x{h} image: at most {MAX_IMAGE_SIDE} pixels per side are read (the \
+                 working size is at most {} anyway)",
+                crate::app::config::MAX_SIDE
+            ),
+        });
+    }
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_IMAGE_SIDE);
+    limits.max_image_height = Some(MAX_IMAGE_SIDE);
+    // 16384² at 16-bit RGBA: what a header within the side limit may honestly need.
+    limits.max_alloc = Some(8 * u64::from(MAX_IMAGE_SIDE).pow(2));
+    let mut reader = reader();
+    reader.limits(limits);
+    reader.decode().map_err(image_error)
 }
 
 /// `[0, 1]` → `0..=255`, rounded.

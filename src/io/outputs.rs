@@ -40,6 +40,20 @@ pub fn output_names(k: usize) -> Vec<String> {
     names
 }
 
+/// Whether `name` is a file a morph writes into its output folder (for any `K`), or a
+/// temporary one of those left by a killed writer ([`crate::io::images::write_atomically`]).
+pub fn is_morph_output(name: &str) -> bool {
+    let name = match name.strip_prefix('.').and_then(|n| n.rsplit_once(".tmp-")) {
+        Some((file, pid)) if !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()) => file,
+        _ => name,
+    };
+    let frame = name
+        .strip_prefix("frame_")
+        .and_then(|n| n.strip_suffix(".png"))
+        .is_some_and(|k| k.len() >= 2 && k.bytes().all(|b| b.is_ascii_digit()));
+    frame || output_names(0).iter().skip(1).any(|n| n == name)
+}
+
 /// File name of the run's record (`deepmorph::app::config::RunRecord`).
 pub const CONFIG: &str = "config.json";
 /// File name of the quality numbers ([`crate::eval::metrics::Metrics`]).
@@ -290,37 +304,83 @@ pub fn load_deformations(dir: &Path) -> Result<([usize; 4], Vec<f32>)> {
 /// If a file is missing or malformed.
 pub fn load_field(header_path: &Path) -> Result<([usize; 4], Vec<f32>)> {
     let dir = header_path.parent().unwrap_or(Path::new("."));
-    let malformed = |detail: String| Error::Shape {
-        op: "load_deformations",
+    let malformed = |path: &Path, detail: String| Error::Format {
+        path: path.to_path_buf(),
         detail,
     };
-    let header: DeformationsHeader = serde_json::from_slice(&read_bytes(header_path)?)
-        .map_err(|e| malformed(format!("{}: {e}", header_path.display())))?;
+    let bytes = read_bytes(header_path, 1 << 20, "deformation header")?;
+    let header: DeformationsHeader = serde_json::from_slice(&bytes)
+        .map_err(|e| malformed(header_path, format!("not a deformation header: {e}")))?;
     if header.format != "deepmorph-deformations" || header.version != 1 || header.dtype != "f32le" {
-        return Err(malformed(format!(
-            "{}: unsupported format {:?} v{} {}",
-            header_path.display(),
-            header.format,
-            header.version,
-            header.dtype
-        )));
+        return Err(malformed(
+            header_path,
+            format!(
+                "unsupported format {:?} v{} {}",
+                header.format, header.version, header.dtype
+            ),
+        ));
     }
-    let bytes = read_bytes(&dir.join(&header.data))?;
-    let count: usize = header.shape.iter().product();
-    if bytes.len() != 4 * count {
-        return Err(malformed(format!(
-            "{}: {} bytes for shape {:?}",
-            header.data,
-            bytes.len(),
-            header.shape
-        )));
+    // The values live beside the header: a path elsewhere is not followed.
+    let plain = Path::new(&header.data)
+        .file_name()
+        .is_some_and(|n| n == header.data.as_str());
+    if !plain || header.data.starts_with('.') {
+        return Err(malformed(
+            header_path,
+            format!(
+                "data = {:?}: must name a file in the same folder",
+                header.data
+            ),
+        ));
     }
-    let values = bytes
+    let [n, two, h, w] = header.shape;
+    let max_side = crate::app::config::MAX_SIDE;
+    if !(1..=MAX_FIELDS).contains(&n)
+        || two != 2
+        || !(1..=max_side).contains(&h)
+        || !(1..=max_side).contains(&w)
+    {
+        return Err(malformed(
+            header_path,
+            format!(
+                "shape {:?}: expected [N, 2, H, W] with 1 <= N <= {MAX_FIELDS} and sides from 1 \
+                 to {max_side}",
+                header.shape
+            ),
+        ));
+    }
+    let data_path = dir.join(&header.data);
+    let expected = 4 * n * two * h * w;
+    let bytes = read_bytes(
+        &data_path,
+        expected as u64,
+        "deformation file of that shape",
+    )?;
+    if bytes.len() != expected {
+        return Err(malformed(
+            &data_path,
+            format!(
+                "{} bytes, shape {:?} needs {expected} (truncated)",
+                bytes.len(),
+                header.shape
+            ),
+        ));
+    }
+    let values: Vec<f32> = bytes
         .chunks_exact(4)
         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
         .collect();
+    if let Some(at) = values.iter().position(|v| !v.is_finite()) {
+        return Err(malformed(
+            &data_path,
+            format!("value {at} is {}: not a deformation", values[at]),
+        ));
+    }
     Ok((header.shape, values))
 }
+
+/// The most fields a deformation file may hold (`K` is at most 10000).
+const MAX_FIELDS: usize = 10_000;
 
 #[cfg(test)]
 mod tests {
@@ -334,5 +394,18 @@ mod tests {
         assert_eq!(displacement_colour(0.0, 0.5, 1.0), [128, 0, 0]); // half as bright
         assert_eq!(frame_name(3, 15), "frame_03.png");
         assert_eq!(frame_name(7, 120), "frame_007.png");
+        for name in output_names(120) {
+            assert!(is_morph_output(&name), "{name}");
+        }
+        assert!(is_morph_output(".frame_054.png.tmp-22172"));
+        for name in [
+            "frame_1.png",
+            "frame_01.jpg",
+            "notes.txt",
+            ".config.json.tmp-",
+            "a.png",
+        ] {
+            assert!(!is_morph_output(name), "{name}");
+        }
     }
 }

@@ -18,7 +18,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::io::images::{decode_image, read_bytes, write_atomically};
+use crate::io::images::{MAX_IMAGE_SIDE, decode_image, read_bytes, write_atomically};
 
 /// The `.flo` tag: the float32 202021.25, whose little-endian bytes spell `PIEH`.
 const FLO_TAG: &[u8; 4] = b"PIEH";
@@ -146,24 +146,29 @@ impl Correspondence {
     ///
     /// If the file is unreadable, has no `PIEH` tag, an implausible size, or is truncated.
     pub fn read_flo(path: &Path) -> Result<Self> {
-        let bytes = read_bytes(path)?;
         let bad = |detail: String| Error::Format {
             path: path.to_path_buf(),
             detail,
         };
+        // The header says how much follows: read that much and one byte more, never more.
+        let mut bytes = read_bytes_prefix(path, 12)?;
         if bytes.len() < 12 || &bytes[..4] != FLO_TAG {
             return Err(bad("not a .flo file (no PIEH tag)".into()));
         }
         let int = |at: usize| i32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
         let (w, h) = (int(4), int(8));
-        if !(1..=1 << 16).contains(&w) || !(1..=1 << 16).contains(&h) {
-            return Err(bad(format!("implausible size {w}x{h}")));
+        let side = 1..=MAX_IMAGE_SIDE as i32;
+        if !side.contains(&w) || !side.contains(&h) {
+            return Err(bad(format!(
+                "implausible size {w}x{h} (sides from 1 to {MAX_IMAGE_SIDE})"
+            )));
         }
         let (w, h) = (w as usize, h as usize);
         let expected = 12 + 8 * w * h;
+        bytes = read_bytes(path, expected as u64, "flow file of that size")?;
         if bytes.len() != expected {
             return Err(bad(format!(
-                "{} bytes, a {w}x{h} flow needs {expected} (truncated or trailing data)",
+                "{} bytes, a {w}x{h} flow needs {expected} (truncated)",
                 bytes.len()
             )));
         }
@@ -279,6 +284,22 @@ impl Correspondence {
             identity_mean: identity / count,
         })
     }
+}
+
+/// The first `n` bytes of a file (fewer if it is shorter).
+fn read_bytes_prefix(path: &Path, n: u64) -> Result<Vec<u8>> {
+    use std::io::Read;
+    let io_error = |cause| Error::Io {
+        path: path.to_path_buf(),
+        cause,
+    };
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .map_err(io_error)?
+        .take(n)
+        .read_to_end(&mut bytes)
+        .map_err(io_error)?;
+    Ok(bytes)
 }
 
 #[cfg(test)]

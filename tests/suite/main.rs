@@ -14,6 +14,7 @@ mod gradcheck;
 mod layers;
 mod properties;
 mod quality;
+mod reliability;
 mod solver;
 mod solver_rules;
 mod vgg;

@@ -36,14 +36,14 @@ fn shared_image(name: &str) -> Option<PathBuf> {
     }
 }
 
-/// `deepmorph eval OUT --truth TRUTH`, which must succeed.
+/// `deepmorph eval OUT --truth TRUTH --write`, which must succeed.
 fn eval_against(out: &Path, truth: &Path) {
     deepmorph()
         .arg("eval")
         .arg(out)
         .arg("--truth")
         .arg(truth)
-        .args(["--backend", "flex", "-q"])
+        .args(["--backend", "flex", "-q", "--write"])
         .assert()
         .success();
 }

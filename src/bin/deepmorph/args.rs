@@ -38,9 +38,14 @@ fn deep() -> DeepConfig {
 /// The options every morph takes (`morph` and `demo`).
 #[derive(Args, Clone, Debug)]
 pub struct RunArgs {
-    /// Output directory (created if needed).
+    /// Output folder: new, empty, or (with --force) holding an earlier morph. It appears
+    /// complete when the run ends; until then the files are in a hidden sibling folder.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Replace the morph in an existing output folder (atomically, once the new one is
+    /// complete). A folder holding files deepmorph does not write is never replaced.
+    #[arg(long)]
+    pub force: bool,
     /// Start from the settings (and, for `morph` without images, the inputs) of an earlier
     /// run's config.json; the flags given override them.
     #[arg(long, value_name = "FILE")]
@@ -257,7 +262,7 @@ pub(crate) enum Command {
         run: RunArgs,
     },
     /// Quality numbers of a finished morph (composed map, det J, energy split, warp
-    /// consistency, endpoint error against a ground truth); writes DIR/metrics.json.
+    /// consistency, endpoint error against a ground truth); with --write, also into the folder.
     Eval {
         /// A morph's output directory.
         dir: PathBuf,
@@ -265,6 +270,12 @@ pub(crate) enum Command {
         /// 0 = unknown) or a Middlebury .flo flow file, at the input image's size.
         #[arg(long)]
         truth: Option<PathBuf>,
+        /// Accept a ground truth of another size than the first input, scaled to the morph.
+        #[arg(long)]
+        resample_truth: bool,
+        /// Write metrics.json and the composed map (composed.json, composed.f32) into DIR.
+        #[arg(long)]
+        write: bool,
         /// Compute backend, as compiled in.
         #[arg(long, value_enum)]
         backend: Option<Backend>,
@@ -285,9 +296,12 @@ pub(crate) enum Command {
         /// Size of the deformation (see --field).
         #[arg(long, allow_negative_numbers = true)]
         amount: f64,
-        /// Output directory (created if needed).
+        /// Output folder: new, empty, or (with --force) holding an earlier pair.
         #[arg(short, long)]
         output: PathBuf,
+        /// Replace the pair in an existing output folder.
+        #[arg(long)]
+        force: bool,
         /// Compute backend, as compiled in.
         #[arg(long, value_enum)]
         backend: Option<Backend>,

@@ -1,25 +1,25 @@
 //! `deepmorph`: morph one image into another along a time-discrete geodesic.
 //!
 //! The library does the work ([`deepmorph::app`]); this program parses arguments, shows
-//! progress, turns Ctrl-C and SIGTERM into a clean stop, and maps outcomes to exit codes.
+//! progress, turns Ctrl-C, SIGTERM and SIGHUP into a clean stop, and maps outcomes to exit codes.
 
 mod args;
 mod progress;
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{Context, Result};
 use clap::Parser;
 use deepmorph::app::config::{Inputs, MorphConfig};
-use deepmorph::app::job::{MorphJob, prepare_output_dir, write_metrics};
+use deepmorph::app::evaluate::evaluate;
+use deepmorph::app::job::{MorphJob, write_metrics};
 use deepmorph::app::memory;
-use deepmorph::eval::folder::MorphFolder;
 use deepmorph::eval::synthetic::{Field, warped_pair};
 use deepmorph::io::images::{RgbImage, write_png};
+use deepmorph::io::output_folder::OutputFolder;
 use deepmorph::io::outputs::save_composed;
-use deepmorph::io::truth::Correspondence;
 use deepmorph::solver::observer::Termination;
 use deepmorph::{Backend, Precision};
 
@@ -53,17 +53,29 @@ fn run(cli: Cli) -> Result<i32> {
         Command::Eval {
             dir,
             truth,
+            resample_truth,
+            write,
             backend,
             quiet,
-        } => return eval(&dir, truth, backend, quiet),
+        } => {
+            return eval(
+                &dir,
+                truth.as_deref(),
+                resample_truth,
+                write,
+                backend,
+                quiet,
+            );
+        }
         Command::Warp {
             image,
             field,
             amount,
             output,
+            force,
             backend,
         } => {
-            return warp(&image, field, amount, &output, backend);
+            return warp(&image, field, amount, &output, force, backend);
         }
         Command::Morph {
             a,
@@ -102,16 +114,20 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     if let Some((level, sweep)) = injected_fault()? {
         job = job.inject_nonfinite(level, sweep);
     }
-    let out = prepare_output_dir(&args.output, &job.inputs().files(), &job.output_names())?;
+    let folder = job.output_folder(&args.output, args.force)?;
     let interrupt = Arc::new(AtomicBool::new(false));
     let flag = Arc::clone(&interrupt);
+    let staging = folder.path().to_path_buf();
+    // SIGINT, SIGTERM and SIGHUP alike (ctrlc's `termination` feature).
     ctrlc::set_handler(move || {
         if flag.swap(true, Ordering::SeqCst) {
-            std::process::exit(EXIT_INTERRUPTED); // a second signal does not wait
+            // A second signal does not wait; the previous output, if any, is untouched.
+            let _ = std::fs::remove_dir_all(&staging);
+            std::process::exit(EXIT_INTERRUPTED);
         }
-        eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (Ctrl-C again to abort)");
+        eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (signal again to abort)");
     })
-    .context("installing the Ctrl-C handler")?;
+    .context("installing the signal handler")?;
     let verbosity = match (args.quiet, args.verbose) {
         (true, _) => Verbosity::Quiet,
         (_, true) => Verbosity::Verbose,
@@ -140,7 +156,7 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     let mut progress = Progress::new(verbosity);
     let result = job.run(&mut progress, &interrupt)?;
     drop(progress);
-    let metrics = result.write(&job, &out)?;
+    let (metrics, out) = result.write(&job, folder)?;
     let termination = &result.morph.termination;
     if let Termination::NonFinite { .. } = termination {
         eprintln!(
@@ -182,27 +198,33 @@ fn injected_fault() -> Result<Option<(usize, usize)>> {
         .with_context(|| format!("DEEPMORPH_INJECT_NONFINITE={value} is not LEVEL:SWEEP"))
 }
 
+/// The files `deepmorph warp` writes.
+fn is_warp_output(name: &str) -> bool {
+    ["a.png", "b.png", "truth.flo"].contains(&name)
+}
+
 fn backend_or_default(backend: Option<Backend>) -> Backend {
     backend.unwrap_or(MorphConfig::default().backend)
 }
 
-/// `deepmorph eval`: reads a morph's folder, prints its metrics and writes `metrics.json`.
-fn eval(dir: &Path, truth: Option<PathBuf>, backend: Option<Backend>, quiet: bool) -> Result<i32> {
+/// `deepmorph eval`: reads a morph's folder, checks it, prints its metrics and, with
+/// `write`, writes `metrics.json` and the composed map into it.
+fn eval(
+    dir: &Path,
+    truth: Option<&Path>,
+    resample_truth: bool,
+    write: bool,
+    backend: Option<Backend>,
+    quiet: bool,
+) -> Result<i32> {
     let device = backend_or_default(backend).device_for(Precision::F32)?;
-    let folder = MorphFolder::read(dir, &device)?;
-    let truth = truth
-        .map(|path| Correspondence::load(&path).map(|t| (t, path)))
-        .transpose()?;
-    let composed = folder.composed();
-    save_composed(dir, composed.clone())?;
-    let name = truth.as_ref().map(|(_, path)| path.display().to_string());
-    let metrics = folder.metrics(
-        composed,
-        truth.as_ref().map(|(t, _)| t).zip(name.as_deref()),
-    )?;
-    write_metrics(dir, &metrics)?;
+    let evaluation = evaluate(dir, truth, resample_truth, &device)?;
     if !quiet {
-        print!("{metrics}");
+        print!("{}", evaluation.metrics);
+    }
+    if write {
+        save_composed(dir, evaluation.composed)?;
+        write_metrics(dir, &evaluation.metrics)?;
     }
     Ok(0)
 }
@@ -213,16 +235,18 @@ fn warp(
     field: Field,
     amount: f64,
     out: &Path,
+    force: bool,
     backend: Option<Backend>,
 ) -> Result<i32> {
     let input = RgbImage::load(image)?;
     let device = backend_or_default(backend).device_for(Precision::F32)?;
     let (warped, truth) = warped_pair(&input, field, amount, &device)?;
-    let names = ["a.png", "b.png", "truth.flo"].map(String::from);
-    let out = prepare_output_dir(out, &[image], &names)?;
-    write_png(&out.join("a.png"), &warped.to_rgb8())?;
-    write_png(&out.join("b.png"), &input.to_rgb8())?;
-    truth.write_flo(&out.join("truth.flo"))?;
+    let folder = OutputFolder::begin(out, &[image], is_warp_output, force)?;
+    let staging = folder.path();
+    write_png(&staging.join("a.png"), &warped.to_rgb8())?;
+    write_png(&staging.join("b.png"), &input.to_rgb8())?;
+    truth.write_flo(&staging.join("truth.flo"))?;
+    let out = folder.commit()?;
     eprintln!(
         "wrote a.png ({field} {amount} applied to {}), b.png and truth.flo ({}x{}) to {}",
         image.display(),

@@ -64,10 +64,8 @@ impl Vgg19Weights {
     /// [`Error::Io`] if the file cannot be read; [`Error::Format`] naming what is wrong
     /// with it (not VGG19, which convolution is missing or has which shape, truncation).
     pub fn read(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|cause| Error::Io {
-            path: path.to_path_buf(),
-            cause,
-        })?;
+        // The whole VGG19 with its classifier is 548 MB in float32.
+        let bytes = crate::io::images::read_bytes(path, 2 << 30, "VGG19 weights file")?;
         let kind = match path.extension().and_then(|e| e.to_str()) {
             Some("onnx") => Kind::Onnx,
             Some("safetensors") => Kind::Safetensors,

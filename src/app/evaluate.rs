@@ -1,0 +1,119 @@
+//! `deepmorph eval` as a library call: a morph's output folder read back, checked against its
+//! own record, and measured, optionally against a ground-truth correspondence.
+
+use std::path::Path;
+
+use burn::tensor::{Device, Tensor};
+
+use crate::app::config::{Inputs, RunRecord};
+use crate::error::{Error, Result};
+use crate::eval::folder::MorphFolder;
+use crate::eval::metrics::Metrics;
+use crate::io::outputs::CONFIG;
+use crate::io::truth::Correspondence;
+
+/// What [`evaluate`] measured.
+pub struct Evaluation {
+    /// The quality numbers (with the endpoint error when a truth was given).
+    pub metrics: Metrics,
+    /// The composed map `Φ`, `[1, 2, H, W]`.
+    pub composed: Tensor<4>,
+}
+
+/// How far the aspect ratio of a ground truth may be from the morph's when the input's own
+/// size is unknown (the working size rounds each side to a multiple of up to 16 pixels).
+const ASPECT_TOLERANCE: f64 = 0.05;
+
+/// Reads the morph in `dir`, checks that its `config.json` describes the files beside it,
+/// and measures it; with `truth`, also its endpoint error against that file. A truth must be
+/// at the size of the morph's first input (or, where that input cannot be read, of the same
+/// aspect as the working size); another size is refused unless `resample_truth`.
+///
+/// # Errors
+///
+/// A missing or malformed file, a record that disagrees with the files, a truth of another
+/// size.
+pub fn evaluate(
+    dir: &Path,
+    truth: Option<&Path>,
+    resample_truth: bool,
+    device: &Device,
+) -> Result<Evaluation> {
+    let folder = MorphFolder::read(dir, device)?;
+    let record = RunRecord::read(&dir.join(CONFIG))?;
+    let (h, w) = (folder.grid.height(), folder.grid.width());
+    let disagree = |detail: String| Error::Format {
+        path: dir.join(CONFIG),
+        detail: format!("{detail}: the folder mixes files of different runs"),
+    };
+    if record.config.solver.steps != folder.steps {
+        return Err(disagree(format!(
+            "records K = {} but the deformations hold {} steps",
+            record.config.solver.steps, folder.steps
+        )));
+    }
+    if record.outcome.grid != [h, w] {
+        return Err(disagree(format!(
+            "records a {}x{} grid but the deformations are {w}x{h}",
+            record.outcome.grid[1], record.outcome.grid[0]
+        )));
+    }
+    let truth = truth
+        .map(|path| -> Result<_> {
+            let correspondence = Correspondence::load(path)?;
+            check_truth_size(&correspondence, path, &record, resample_truth)?;
+            Ok((correspondence, path.display().to_string()))
+        })
+        .transpose()?;
+    let composed = folder.composed();
+    let metrics = folder.metrics(
+        composed.clone(),
+        truth.as_ref().map(|(t, name)| (t, name.as_str())),
+    )?;
+    Ok(Evaluation { metrics, composed })
+}
+
+/// Refuses a truth whose size is not the first input's (see [`evaluate`]).
+fn check_truth_size(
+    truth: &Correspondence,
+    path: &Path,
+    record: &RunRecord,
+    resample: bool,
+) -> Result<()> {
+    if resample {
+        return Ok(());
+    }
+    let (th, tw) = (truth.height(), truth.width());
+    let [wh, ww] = record.working_size;
+    let input = match &record.inputs {
+        Inputs::Files { a, .. } => image::image_dimensions(a)
+            .ok()
+            .map(|(w, h)| (h as usize, w as usize, a.display().to_string())),
+        Inputs::Demo => Some((wh, ww, "demo input".into())),
+    };
+    let refuse = |what: String| {
+        Err(Error::Format {
+            path: path.to_path_buf(),
+            detail: format!(
+                "a {tw}x{th} ground truth, but {what}: pass --resample-truth to scale it to \
+                 the morph (displacements scaled per axis)"
+            ),
+        })
+    };
+    match input {
+        Some((ih, iw, name)) if (ih, iw) != (th, tw) => {
+            refuse(format!("the first input {name} is {iw}x{ih}"))
+        }
+        Some(_) => Ok(()),
+        None => {
+            let aspect = |h: usize, w: usize| w as f64 / h as f64;
+            if (aspect(th, tw) / aspect(wh, ww) - 1.0).abs() > ASPECT_TOLERANCE {
+                refuse(format!(
+                    "the morph is {ww}x{wh} (its first input cannot be read to compare sizes)"
+                ))
+            } else {
+                Ok(())
+            }
+        }
+    }
+}

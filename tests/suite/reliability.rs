@@ -1,0 +1,442 @@
+//! What README's "Reliability" section promises, tried as a hostile user would: an output
+//! folder never holds two runs' files and never loses the previous morph (whatever signal
+//! stops a run), every limit is checked before anything large is allocated, and untrusted
+//! files are read only as far as their declared, checked size.
+
+use crate::common;
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Stdio};
+use std::time::{Duration, Instant};
+
+use assert_cmd::Command;
+use common::fails;
+use deepmorph::io::outputs::output_names;
+use deepmorph::io::truth::Correspondence;
+
+fn scratch(name: &str) -> PathBuf {
+    common::scratch("reliability", name)
+}
+
+fn deepmorph() -> Command {
+    Command::cargo_bin("deepmorph").unwrap()
+}
+
+/// A demo morph of `k` steps at 32² into `out` that takes well under a second.
+fn quick_demo(out: &Path, k: usize, extra: &[&str]) -> Command {
+    let mut cmd = deepmorph();
+    cmd.args([
+        "demo", "--size", "32", "-q", "--levels", "2", "--sweeps", "2",
+    ])
+    .args(["--backend", "flex", "-K", &k.to_string(), "-o"])
+    .arg(out)
+    .args(extra);
+    cmd
+}
+
+/// A demo morph of 3 steps into `out` that runs until it is signalled.
+fn endless_demo(out: &Path, extra: &[&str]) -> Child {
+    std::process::Command::new(assert_cmd::cargo::cargo_bin("deepmorph"))
+        .args(["demo", "--size", "32", "-K", "3", "--levels", "2", "-q"])
+        .args(["--sweeps", "1000000", "--backend", "flex", "-o"])
+        .arg(out)
+        .args(extra)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn signal(child: &Child, name: &str) {
+    let sent = std::process::Command::new("kill")
+        .args([&format!("-{name}"), &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(sent.success(), "kill -{name}");
+}
+
+fn exit_code(child: &mut Child) -> Option<i32> {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status.code();
+        }
+        assert!(Instant::now() < deadline, "no exit 120 s after the signal");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// The sorted file names in `dir`.
+fn listing(dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    names
+}
+
+/// Asserts that `dir` holds exactly the outputs of one complete morph of `k` steps.
+fn holds_one_morph(dir: &Path, k: usize) {
+    let mut expected = output_names(k);
+    expected.sort();
+    assert_eq!(listing(dir), expected, "{}", dir.display());
+    let record: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join("config.json")).unwrap()).unwrap();
+    assert_eq!(record["config"]["solver"]["steps"], k);
+}
+
+/// Asserts that `parent` holds nothing but `names` (no staging folder, no temporary file).
+fn nothing_else_in(parent: &Path, names: &[&str]) {
+    assert_eq!(listing(parent), names, "{}", parent.display());
+}
+
+#[test]
+fn a_previous_morph_is_replaced_whole_and_only_with_force() {
+    let dir = scratch("replace");
+    let out = dir.join("out");
+    quick_demo(&out, 6, &[]).assert().success();
+    holds_one_morph(&out, 6);
+    let err = fails(&mut quick_demo(&out, 2, &[]));
+    assert!(err.contains("--force"), "{err}");
+    holds_one_morph(&out, 6);
+    // Fewer steps: no stale frame_03..06; more than 99: no two-digit frames left over.
+    quick_demo(&out, 2, &["--force"]).assert().success();
+    holds_one_morph(&out, 2);
+    nothing_else_in(&dir, &["out"]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_folder_of_other_files_is_never_replaced() {
+    let dir = scratch("foreign");
+    let out = dir.join("out");
+    std::fs::create_dir(&out).unwrap();
+    std::fs::write(out.join("notes.txt"), b"precious").unwrap();
+    let err = fails(&mut quick_demo(&out, 2, &["--force"]));
+    assert!(err.contains("notes.txt"), "{err}");
+    assert_eq!(listing(&out), ["notes.txt"]);
+    nothing_else_in(&dir, &["out"]);
+    // A file where the folder should be.
+    let err = fails(&mut quick_demo(&out.join("notes.txt"), 2, &[]));
+    assert!(err.contains("not a folder"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// An output folder that cannot be written is refused before the solve (this run would
+/// never end if it started solving), and a failed run leaves no folder behind.
+#[test]
+fn an_unwritable_output_is_refused_before_any_work() {
+    let err = fails(
+        deepmorph()
+            .args(["demo", "--size", "32", "--sweeps", "1000000", "-o"])
+            .arg("/proc/self/deepmorph-out"),
+    );
+    assert!(
+        err.contains("/proc/self/deepmorph-out") && err.contains("cannot be written"),
+        "{err}"
+    );
+    let dir = scratch("failed");
+    let out = dir.join("out");
+    let err = fails(&mut quick_demo(&out, 2, &["--beta", "1.5"]));
+    assert!(err.contains("beta = 1.5"), "{err}");
+    let err = fails(&mut quick_demo(&out, 2, &["--eta", "nan"]));
+    assert!(err.contains("eta"), "{err}");
+    nothing_else_in(&dir, &[]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// SIGTERM and SIGHUP stop a run like Ctrl-C: after the sweep, every output written,
+/// exit status 130, the previous morph replaced whole.
+#[test]
+fn sigterm_and_sighup_write_outputs_like_ctrl_c() {
+    for name in ["TERM", "HUP"] {
+        let dir = scratch(&format!("signal-{name}"));
+        let out = dir.join("out");
+        quick_demo(&out, 6, &[]).assert().success();
+        let mut child = endless_demo(&out, &["--force"]);
+        std::thread::sleep(Duration::from_secs(2));
+        signal(&child, name);
+        assert_eq!(exit_code(&mut child), Some(130), "SIG{name}");
+        holds_one_morph(&out, 3);
+        nothing_else_in(&dir, &["out"]);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
+
+/// A second signal aborts at once; the folder then holds either the previous morph or the
+/// new one, complete, and no staging folder is left.
+#[test]
+fn a_second_signal_aborts_without_mixing_two_runs() {
+    let dir = scratch("abort");
+    let out = dir.join("out");
+    quick_demo(&out, 6, &[]).assert().success();
+    let mut child = endless_demo(&out, &["--force"]);
+    std::thread::sleep(Duration::from_secs(2));
+    signal(&child, "INT");
+    signal(&child, "INT");
+    assert_eq!(exit_code(&mut child), Some(130));
+    let k = if listing(&out).len() == output_names(6).len() {
+        6
+    } else {
+        3
+    };
+    holds_one_morph(&out, k);
+    nothing_else_in(&dir, &["out"]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// SIGKILL cannot be caught: the previous morph stays whole, the killed run's staging folder
+/// stays beside it, and the next run into the same place removes it.
+#[test]
+fn a_killed_run_leaves_the_previous_morph_and_is_cleaned_up_next_time() {
+    let dir = scratch("kill");
+    let out = dir.join("out");
+    quick_demo(&out, 6, &[]).assert().success();
+    let mut child = endless_demo(&out, &["--force"]);
+    std::thread::sleep(Duration::from_secs(2));
+    signal(&child, "KILL");
+    assert_eq!(exit_code(&mut child), None);
+    holds_one_morph(&out, 6);
+    let staging = format!(".out.deepmorph-{}", child.id());
+    nothing_else_in(&dir, &[&staging, "out"]);
+    quick_demo(&out, 2, &["--force"]).assert().success();
+    holds_one_morph(&out, 2);
+    nothing_else_in(&dir, &["out"]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Sizes and widths are bounded before anything is allocated: none of these may take
+/// memory or time (the sizes would need terabytes).
+#[test]
+fn limits_are_checked_before_allocation() {
+    let dir = scratch("limits");
+    let out = dir.join("out");
+    let demo = |size: &str, extra: &[&str]| {
+        let mut cmd = deepmorph();
+        cmd.args(["demo", "-q", "--backend", "flex", "--size", size, "-o"])
+            .arg(&out)
+            .args(extra);
+        cmd
+    };
+    let err = fails(&mut demo("100000", &[]));
+    assert!(err.contains("at most 8192"), "{err}");
+    let err = fails(&mut demo("8192", &["--max-memory", "0.5"]));
+    assert!(
+        err.contains("needs about") && err.contains("--max-memory"),
+        "{err}"
+    );
+    for (flag, value) in [("--sigma", "1e30"), ("--rho", "1e9")] {
+        let err = fails(&mut quick_demo(&out, 2, &[flag, value]));
+        assert!(err.contains("at most 100"), "{flag} {value}: {err}");
+    }
+    // A PNG whose header claims 20000² pixels: refused from the header, naming both sizes.
+    let huge = dir.join("huge.png");
+    std::fs::write(&huge, png_header(20000, 20000)).unwrap();
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&huge, &huge])
+            .arg("-o")
+            .arg(&out),
+    );
+    assert!(
+        err.contains("20000x20000") && err.contains("16384"),
+        "{err}"
+    );
+    nothing_else_in(&dir, &["huge.png"]);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A PNG that claims `width × height` (8-bit RGB) in its header and holds no pixels: the
+/// signature, IHDR, an empty IDAT and IEND.
+fn png_header(width: u32, height: u32) -> Vec<u8> {
+    let mut ihdr = width.to_be_bytes().to_vec();
+    ihdr.extend(height.to_be_bytes());
+    ihdr.extend([8, 2, 0, 0, 0]);
+    let mut bytes = vec![0x89, b'P', b'N', b'G', 0x0d, 0x0a, 0x1a, 0x0a];
+    for (kind, data) in [(b"IHDR", &ihdr[..]), (b"IDAT", &[]), (b"IEND", &[])] {
+        let mut chunk = kind.to_vec();
+        chunk.extend(data);
+        bytes.extend((data.len() as u32).to_be_bytes());
+        bytes.extend(&chunk);
+        bytes.extend(crc32(&chunk).to_be_bytes());
+    }
+    bytes
+}
+
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in bytes {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xedb8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
+
+/// Inputs from a pipe (process substitution, `mkfifo`) are read like files.
+#[test]
+fn an_input_from_a_pipe_is_read() {
+    let dir = scratch("fifo");
+    let a = dir.join("a.png");
+    image::RgbImage::from_fn(32, 32, |x, y| {
+        image::Rgb([(x * 8) as u8, (y * 8) as u8, 90])
+    })
+    .save(&a)
+    .unwrap();
+    let fifo = dir.join("b.fifo");
+    assert!(
+        std::process::Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let bytes = std::fs::read(&a).unwrap();
+    let writer = {
+        let fifo = fifo.clone();
+        std::thread::spawn(move || std::fs::write(fifo, bytes).unwrap())
+    };
+    deepmorph()
+        .arg("morph")
+        .args([&a, &fifo])
+        .args([
+            "-K",
+            "2",
+            "--levels",
+            "1",
+            "--sweeps",
+            "1",
+            "-q",
+            "--backend",
+            "flex",
+        ])
+        .arg("-o")
+        .arg(dir.join("out"))
+        .assert()
+        .success();
+    writer.join().unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `eval` writes only with `--write`, checks that `config.json` describes the files, and
+/// refuses a ground truth of another size unless told to resample it.
+#[test]
+fn eval_checks_the_folder_and_the_truth_and_writes_only_when_asked() {
+    let dir = scratch("eval");
+    let out = dir.join("out");
+    quick_demo(&out, 2, &[]).assert().success();
+    let metrics_before = std::fs::read(out.join("metrics.json")).unwrap();
+    std::fs::remove_file(out.join("composed.json")).unwrap();
+    deepmorph()
+        .arg("eval")
+        .arg(&out)
+        .args(["--backend", "flex"])
+        .assert()
+        .success();
+    assert!(
+        !out.join("composed.json").exists(),
+        "eval wrote without --write"
+    );
+    assert_eq!(
+        std::fs::read(out.join("metrics.json")).unwrap(),
+        metrics_before
+    );
+
+    let small = dir.join("small.flo");
+    Correspondence::new(16, 16, vec![Some([0.0, 0.0]); 256])
+        .unwrap()
+        .write_flo(&small)
+        .unwrap();
+    let eval_small = |extra: &[&str]| {
+        let mut cmd = deepmorph();
+        cmd.arg("eval")
+            .arg(&out)
+            .arg("--truth")
+            .arg(&small)
+            .args(["--backend", "flex", "-q"])
+            .args(extra);
+        cmd
+    };
+    let err = fails(&mut eval_small(&[]));
+    assert!(
+        err.contains("16x16") && err.contains("--resample-truth"),
+        "{err}"
+    );
+    eval_small(&["--resample-truth"]).assert().success();
+
+    // A record that does not describe the files beside it: a mixed folder.
+    let config = std::fs::read_to_string(out.join("config.json")).unwrap();
+    let mut record: serde_json::Value = serde_json::from_str(&config).unwrap();
+    record["config"]["solver"]["steps"] = 5.into();
+    std::fs::write(out.join("config.json"), record.to_string()).unwrap();
+    let err = fails(
+        deepmorph()
+            .arg("eval")
+            .arg(&out)
+            .args(["--backend", "flex"]),
+    );
+    assert!(
+        err.contains("K = 5") && err.contains("different runs"),
+        "{err}"
+    );
+    std::fs::write(out.join("config.json"), config).unwrap();
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Readers of untrusted files read no more than the size they expect, follow no path out
+/// of their folder, and name the file with what is wrong.
+#[test]
+fn untrusted_files_are_read_within_their_declared_size() {
+    let dir = scratch("untrusted");
+    let out = dir.join("out");
+    quick_demo(&out, 2, &[]).assert().success();
+    let eval = || {
+        let mut cmd = deepmorph();
+        cmd.arg("eval").arg(&out).args(["--backend", "flex", "-q"]);
+        cmd
+    };
+    let header_path = out.join("deformations.json");
+    let header = std::fs::read_to_string(&header_path).unwrap();
+    for data in ["/dev/zero", "../../../etc/passwd", ".hidden"] {
+        let mut edited: serde_json::Value = serde_json::from_str(&header).unwrap();
+        edited["data"] = data.into();
+        std::fs::write(&header_path, edited.to_string()).unwrap();
+        let err = fails(&mut eval());
+        assert!(err.contains("same folder"), "{data}: {err}");
+    }
+    let mut edited: serde_json::Value = serde_json::from_str(&header).unwrap();
+    edited["shape"] = serde_json::json!([2, 2, 100000, 100000]);
+    std::fs::write(&header_path, edited.to_string()).unwrap();
+    let err = fails(&mut eval());
+    assert!(err.contains("shape"), "{err}");
+    std::fs::write(&header_path, &header).unwrap();
+    // A NaN in the values names the file.
+    let data = out.join("deformations.f32");
+    let mut values = std::fs::read(&data).unwrap();
+    values[..4].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&data, values).unwrap();
+    let err = fails(&mut eval());
+    assert!(
+        err.contains("deformations.f32") && err.contains("NaN"),
+        "{err}"
+    );
+
+    // Weights: a device that never ends is read up to the limit, then refused.
+    let err = fails(
+        deepmorph()
+            .args(["demo", "--size", "64", "--levels", "1", "--model", "deep"])
+            .args(["--vgg19", "/dev/zero", "-o"])
+            .arg(dir.join("deep")),
+    );
+    assert!(
+        err.contains("/dev/zero") && err.contains("more than"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
