@@ -50,6 +50,8 @@ pub mod check;
 pub mod error;
 pub mod eval;
 pub mod features;
+#[cfg(test)]
+mod fuzz;
 pub mod io;
 pub mod model;
 pub mod solver;

@@ -408,4 +408,58 @@ mod tests {
             assert!(!is_morph_output(name), "{name}");
         }
     }
+
+    /// A deformation header and its values, `[1, 2, 2, 3]`.
+    fn seed_field() -> (Vec<u8>, Vec<u8>) {
+        let header = DeformationsHeader {
+            format: "deepmorph-deformations".into(),
+            version: 1,
+            shape: [1, 2, 2, 3],
+            dtype: "f32le".into(),
+            units: "pixels".into(),
+            data: DEFORMATIONS_DATA.into(),
+        };
+        let values = (0..12).flat_map(|i| (i as f32).to_le_bytes()).collect();
+        (serde_json::to_vec(&header).unwrap(), values)
+    }
+
+    /// Writes a header and values into a fresh folder and loads them.
+    fn load_written(header: &[u8], values: &[u8]) -> Result<([usize; 4], Vec<f32>)> {
+        let dir = std::env::temp_dir().join(format!(
+            "deepmorph-fuzz-field-{}-{:?}",
+            std::process::id(),
+            std::thread::current().id()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join(DEFORMATIONS_HEADER), header).unwrap();
+        std::fs::write(dir.join(DEFORMATIONS_DATA), values).unwrap();
+        load_deformations(&dir)
+    }
+
+    #[test]
+    fn the_seed_field_loads() {
+        let (header, values) = seed_field();
+        let (shape, phi) = load_written(&header, &values).unwrap();
+        assert_eq!((shape, phi[11]), ([1, 2, 2, 3], 11.0));
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(crate::fuzz::cases() / 3))]
+
+        #[test]
+        fn fuzz_field_header(header in crate::fuzz::mutated(seed_field().0)) {
+            let values = seed_field().1;
+            crate::fuzz::within_allowance(&header, |h| {
+                let _ = load_written(h, &values);
+            });
+        }
+
+        #[test]
+        fn fuzz_field_values(values in crate::fuzz::mutated(seed_field().1)) {
+            let header = seed_field().0;
+            crate::fuzz::within_allowance(&values, |v| {
+                let _ = load_written(&header, v);
+            });
+        }
+    }
 }

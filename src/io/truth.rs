@@ -151,27 +151,22 @@ impl Correspondence {
             detail,
         };
         // The header says how much follows: read that much and one byte more, never more.
-        let mut bytes = read_bytes_prefix(path, 12)?;
-        if bytes.len() < 12 || &bytes[..4] != FLO_TAG {
-            return Err(bad("not a .flo file (no PIEH tag)".into()));
+        let expected = flo_size(&read_bytes_prefix(path, 12)?).map_err(bad)?;
+        let bytes = read_bytes(path, expected as u64, "flow file of that size")?;
+        Self::from_flo_bytes(&bytes).map_err(bad)
+    }
+
+    /// A `.flo` file's contents (see [`Correspondence::read_flo`]).
+    fn from_flo_bytes(bytes: &[u8]) -> std::result::Result<Self, String> {
+        let expected = flo_size(bytes)?;
+        if bytes.len() != expected {
+            return Err(format!(
+                "{} bytes, a flow of this size needs {expected} (truncated or trailing data)",
+                bytes.len()
+            ));
         }
         let int = |at: usize| i32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
-        let (w, h) = (int(4), int(8));
-        let side = 1..=MAX_IMAGE_SIDE as i32;
-        if !side.contains(&w) || !side.contains(&h) {
-            return Err(bad(format!(
-                "implausible size {w}x{h} (sides from 1 to {MAX_IMAGE_SIDE})"
-            )));
-        }
-        let (w, h) = (w as usize, h as usize);
-        let expected = 12 + 8 * w * h;
-        bytes = read_bytes(path, expected as u64, "flow file of that size")?;
-        if bytes.len() != expected {
-            return Err(bad(format!(
-                "{} bytes, a {w}x{h} flow needs {expected} (truncated)",
-                bytes.len()
-            )));
-        }
+        let (w, h) = (int(4) as usize, int(8) as usize);
         let displacement = bytes[12..]
             .chunks_exact(8)
             .map(|p| {
@@ -184,7 +179,7 @@ impl Correspondence {
                 known.then(|| [f64::from(v), f64::from(u)])
             })
             .collect();
-        Self::new(h, w, displacement)
+        Self::new(h, w, displacement).map_err(|e| e.to_string())
     }
 
     /// Writes the correspondence as a `.flo` file (unknown pixels as 1e10), atomically.
@@ -284,6 +279,22 @@ impl Correspondence {
             identity_mean: identity / count,
         })
     }
+}
+
+/// The size in bytes of a `.flo` file with this header (its first 12 bytes).
+fn flo_size(header: &[u8]) -> std::result::Result<usize, String> {
+    if header.len() < 12 || &header[..4] != FLO_TAG {
+        return Err("not a .flo file (no PIEH tag)".into());
+    }
+    let int = |at: usize| i32::from_le_bytes(header[at..at + 4].try_into().expect("4 bytes"));
+    let (w, h) = (int(4), int(8));
+    let side = 1..=MAX_IMAGE_SIDE as i32;
+    if !side.contains(&w) || !side.contains(&h) {
+        return Err(format!(
+            "implausible size {w}x{h} (sides from 1 to {MAX_IMAGE_SIDE})"
+        ));
+    }
+    Ok(12 + 8 * w as usize * h as usize)
 }
 
 /// The first `n` bytes of a file (fewer if it is shorter).
@@ -402,5 +413,45 @@ mod tests {
             (wrong.mean - norm).abs() < 1e-12 && wrong.under_1px == 0.0 && wrong.under_3px == 1.0
         );
         assert!(truth.endpoint_error(&id[1..]).is_err());
+    }
+
+    /// A 3×2 `.flo` with one unknown pixel.
+    fn seed_flo() -> Vec<u8> {
+        let mut bytes = FLO_TAG.to_vec();
+        bytes.extend(3i32.to_le_bytes());
+        bytes.extend(2i32.to_le_bytes());
+        for i in 0..6 {
+            let u = if i == 4 { 1e10f32 } else { i as f32 * 0.5 };
+            bytes.extend(u.to_le_bytes());
+            bytes.extend((-u).to_le_bytes());
+        }
+        bytes
+    }
+
+    #[test]
+    fn the_seed_flo_reads() {
+        let truth = Correspondence::from_flo_bytes(&seed_flo()).unwrap();
+        assert_eq!((truth.height(), truth.width()), (2, 3));
+        assert_eq!(truth.at(0, 1), Some([-0.5, 0.5]));
+        assert_eq!(truth.at(1, 1), None);
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(crate::fuzz::cases()))]
+
+        #[test]
+        fn fuzz_flo(bytes in crate::fuzz::mutated(seed_flo())) {
+            crate::fuzz::within_allowance(&bytes, |b| {
+                let _ = Correspondence::from_flo_bytes(b);
+                let _ = flo_size(b);
+            });
+        }
+
+        #[test]
+        fn fuzz_flo_random(bytes in crate::fuzz::random_bytes()) {
+            crate::fuzz::within_allowance(&bytes, |b| {
+                let _ = Correspondence::from_flo_bytes(b);
+            });
+        }
     }
 }

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 /// Each top-level module of `src/` and its rank: lower ranks are further down.
-const RANKS: [(&str, usize); 9] = [
+const RANKS: [(&str, usize); 10] = [
     ("error", 0),
     ("backend", 1),
     ("model", 2),
@@ -16,6 +16,7 @@ const RANKS: [(&str, usize); 9] = [
     ("eval", 5),
     ("app", 6),
     ("check", 6),
+    ("fuzz", 6),
 ];
 
 fn rank(module: &str) -> Option<usize> {

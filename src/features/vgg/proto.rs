@@ -131,7 +131,11 @@ impl Initializer<'_> {
                 self.name
             ));
         }
-        let count: usize = self.dims.iter().product();
+        let count = self
+            .dims
+            .iter()
+            .try_fold(1usize, |n, &d| n.checked_mul(d))
+            .ok_or_else(|| format!("`{}` has dims {:?}: too large", self.name, self.dims))?;
         let values: Vec<f32> = match (self.data_type, self.raw) {
             (1, Some(raw)) => raw
                 .chunks_exact(4)
@@ -276,7 +280,7 @@ impl Fields<'_> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     #[test]
@@ -297,5 +301,109 @@ mod tests {
             err.contains("corrupt") || err.contains("truncated") || err.contains("no ONNX graph"),
             "{err}"
         );
+    }
+
+    /// Protobuf encoding, for the seed model.
+    fn varint(mut v: u64, out: &mut Vec<u8>) {
+        loop {
+            let low = (v & 0x7f) as u8;
+            v >>= 7;
+            if v == 0 {
+                out.push(low);
+                return;
+            }
+            out.push(low | 0x80);
+        }
+    }
+
+    fn bytes_field(field: u64, payload: &[u8], out: &mut Vec<u8>) {
+        varint(field << 3 | 2, out);
+        varint(payload.len() as u64, out);
+        out.extend(payload);
+    }
+
+    fn varint_field(field: u64, v: u64, out: &mut Vec<u8>) {
+        varint(field << 3, out);
+        varint(v, out);
+    }
+
+    /// A model with one convolution: a `[2, 1, 3, 3]` float kernel as raw data, a bias as
+    /// packed floats, and the Conv node that uses them.
+    pub(crate) fn seed_model() -> Vec<u8> {
+        let mut weight = Vec::new();
+        for d in [2, 1, 3, 3] {
+            varint_field(1, d, &mut weight);
+        }
+        varint_field(2, 1, &mut weight);
+        bytes_field(8, b"w", &mut weight);
+        let raw: Vec<u8> = (0..18).flat_map(|i| (i as f32).to_le_bytes()).collect();
+        bytes_field(9, &raw, &mut weight);
+        let mut bias = Vec::new();
+        bytes_field(1, &[2], &mut bias);
+        varint_field(2, 1, &mut bias);
+        bytes_field(8, b"b", &mut bias);
+        let packed: Vec<u8> = [0.5f32, -0.5]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        bytes_field(4, &packed, &mut bias);
+        let mut node = Vec::new();
+        for input in ["x", "w", "b"] {
+            bytes_field(1, input.as_bytes(), &mut node);
+        }
+        bytes_field(4, b"Conv", &mut node);
+        let mut graph = Vec::new();
+        bytes_field(1, &node, &mut graph);
+        bytes_field(5, &weight, &mut graph);
+        bytes_field(5, &bias, &mut graph);
+        let mut model = Vec::new();
+        varint_field(1, 8, &mut model); // ir_version
+        bytes_field(7, &graph, &mut model);
+        model
+    }
+
+    #[test]
+    fn the_seed_model_reads() {
+        let model = seed_model();
+        let graph = parse_model(&model).unwrap();
+        assert_eq!(graph.nodes[0].op_type, "Conv");
+        assert_eq!(graph.initializers[0].dims, [2, 1, 3, 3]);
+        assert_eq!(graph.initializers[0].values().unwrap()[17], 17.0);
+        assert_eq!(graph.initializers[1].values().unwrap(), [0.5, -0.5]);
+    }
+
+    #[test]
+    fn dims_whose_product_overflows_are_an_error() {
+        let init = Initializer {
+            name: "w".into(),
+            dims: vec![1 << 40, 1 << 40],
+            data_type: 1,
+            raw: Some(&[0; 8]),
+            ..Initializer::default()
+        };
+        assert!(init.values().unwrap_err().contains("too large"));
+    }
+
+    /// Everything a weights file's bytes reach: the parse and every initializer's values.
+    fn read_all(bytes: &[u8]) {
+        if let Ok(graph) = parse_model(bytes) {
+            for init in &graph.initializers {
+                let _ = init.values();
+            }
+        }
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(crate::fuzz::cases()))]
+
+        #[test]
+        fn fuzz_random_bytes(bytes in crate::fuzz::random_bytes()) {
+            crate::fuzz::within_allowance(&bytes, read_all);
+        }
+
+        #[test]
+        fn fuzz_mutated_model(bytes in crate::fuzz::mutated(seed_model())) {
+            crate::fuzz::within_allowance(&bytes, read_all);
+        }
     }
 }

@@ -66,6 +66,11 @@ impl Vgg19Weights {
     pub fn read(path: &Path) -> Result<Self> {
         // The whole VGG19 with its classifier is 548 MB in float32.
         let bytes = crate::io::images::read_bytes(path, 2 << 30, "VGG19 weights file")?;
+        Self::parse(path, bytes)
+    }
+
+    /// What [`Vgg19Weights::read`] does with the bytes of `path`.
+    pub(crate) fn parse(path: &Path, bytes: Vec<u8>) -> Result<Self> {
         let kind = match path.extension().and_then(|e| e.to_str()) {
             Some("onnx") => Kind::Onnx,
             Some("safetensors") => Kind::Safetensors,
@@ -250,4 +255,58 @@ fn check((convs, batch_norm): Found) -> std::result::Result<Vgg19Weights, String
     let mut convs = convs;
     convs.truncate(16);
     Ok(Vgg19Weights { convs })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A safetensors file with one torchvision-named convolution, `[2, 1, 3, 3]` and bias.
+    fn seed_safetensors() -> Vec<u8> {
+        let header = br#"{"features.0.weight":{"dtype":"F32","shape":[2,1,3,3],"data_offsets":[0,72]},"features.0.bias":{"dtype":"F32","shape":[2],"data_offsets":[72,80]}}"#;
+        let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
+        bytes.extend(header);
+        bytes.extend((0..20).flat_map(|i| (i as f32).to_le_bytes()));
+        bytes
+    }
+
+    #[test]
+    fn the_seeds_read_and_are_refused_as_not_vgg19() {
+        for (name, bytes) in [
+            ("w.onnx", proto::tests::seed_model()),
+            ("w.safetensors", seed_safetensors()),
+        ] {
+            let err = Vgg19Weights::parse(Path::new(name), bytes).unwrap_err();
+            assert!(
+                err.to_string()
+                    .contains("has shape [2, 1, 3, 3], expected [64, 3, 3, 3]"),
+                "{err}"
+            );
+        }
+    }
+
+    fn parse_as(name: &'static str) -> impl Fn(&[u8]) {
+        move |bytes| {
+            let _ = Vgg19Weights::parse(Path::new(name), bytes.to_vec());
+        }
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(crate::fuzz::cases()))]
+
+        #[test]
+        fn fuzz_onnx(bytes in crate::fuzz::mutated(proto::tests::seed_model())) {
+            crate::fuzz::within_allowance(&bytes, parse_as("w.onnx"));
+        }
+
+        #[test]
+        fn fuzz_safetensors(bytes in crate::fuzz::mutated(seed_safetensors())) {
+            crate::fuzz::within_allowance(&bytes, parse_as("w.safetensors"));
+        }
+
+        #[test]
+        fn fuzz_unknown_extension(bytes in crate::fuzz::random_bytes()) {
+            crate::fuzz::within_allowance(&bytes, parse_as("weights"));
+        }
+    }
 }
