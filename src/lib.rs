@@ -17,6 +17,7 @@
 //! The layers, each importing only from those above it in this list:
 //!
 //! - [`error`]: the library's error type.
+//! - [`read`]: reading untrusted files within a size limit.
 //! - [`backend`]: the only module that knows which backends were compiled in; turns a
 //!   choice into a device and tells the numerics what the device can do.
 //! - [`model`]: the discrete model as differentiable tensor ops (SPEC §0–§5, §7).
@@ -54,6 +55,7 @@ pub mod features;
 mod fuzz;
 pub mod io;
 pub mod model;
+pub mod read;
 pub mod solver;
 
 pub use backend::{Backend, Precision};

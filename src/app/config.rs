@@ -57,8 +57,7 @@ pub enum WorkingSize {
     },
 }
 
-/// Largest side a working size may have: a 16384² deep morph would need terabytes.
-pub const MAX_SIDE: usize = 8192;
+pub use crate::model::grid::MAX_SIDE;
 
 impl WorkingSize {
     /// The working size for an input of `height × width` whose sides must be multiples of
@@ -266,7 +265,8 @@ pub struct RunRecord {
     pub version: String,
     /// What was morphed (files as absolute paths).
     pub inputs: Inputs,
-    /// The working size, `[H, W]`.
+    /// The working size the run was set up for, `[H, W]`; a run stopped on a coarser level
+    /// reached only `outcome.grid`, the size of its outputs.
     pub working_size: [usize; 2],
     /// The settings.
     pub config: MorphConfig,
@@ -281,7 +281,7 @@ impl RunRecord {
     ///
     /// [`Error::Io`] or [`Error::Format`] naming the file.
     pub fn read(path: &Path) -> Result<Self> {
-        let bytes = crate::io::images::read_bytes(path, 16 << 20, "run record")?;
+        let bytes = crate::read::read_bytes(path, 16 << 20, "run record")?;
         serde_json::from_slice(&bytes).map_err(|e| Error::Format {
             path: path.to_path_buf(),
             detail: format!("not a deepmorph run record: {e}"),

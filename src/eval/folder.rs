@@ -14,10 +14,11 @@ use crate::backend::Precision;
 use crate::error::{Error, Result};
 use crate::eval::metrics::{Metrics, compose};
 use crate::io::energy_log::EnergyLog;
-use crate::io::images::{RgbImage, read_bytes};
+use crate::io::images::RgbImage;
 use crate::io::outputs::{CONFIG, DEFORMATIONS_HEADER, frame_name, load_deformations};
 use crate::io::truth::Correspondence;
 use crate::model::grid::Grid;
+use crate::read::read_bytes;
 
 /// A morph's output directory, read back.
 pub struct MorphFolder {

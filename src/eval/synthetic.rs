@@ -77,6 +77,14 @@ pub fn displacement(field: Field, amount: f64, h: usize, w: usize) -> Result<Vec
     if !amount.is_finite() {
         return Err(Error::invalid("amount", amount, "a finite number"));
     }
+    // An angle is not taken modulo 360: 360° would be "applied" and move nothing.
+    if field == Field::Rotate && amount.abs() >= 180.0 {
+        return Err(Error::invalid(
+            "amount",
+            amount,
+            "an angle strictly between -180 and 180 degrees",
+        ));
+    }
     if h < 4 || w < 4 {
         return Err(Error::invalid(
             "image size",

@@ -9,6 +9,7 @@ use image::imageops::FilterType;
 
 use crate::error::{Error, Result};
 use crate::model::grid::{Grid, host_values};
+use crate::read::read_bytes;
 
 /// An RGB image on the host: values in `[0, 1]`, channel-major `[3, H, W]`.
 #[derive(Clone, Debug, PartialEq)]
@@ -162,43 +163,10 @@ impl RgbImage {
 }
 
 /// The largest side of an input image in pixels (the working size's limit is smaller:
-/// [`crate::app::config::MAX_SIDE`]); a larger one is refused from its header, before decoding.
+/// [`crate::model::grid::MAX_SIDE`]); a larger one is refused from its header, before decoding.
 pub const MAX_IMAGE_SIDE: u32 = 16384;
 /// The largest image file read.
 pub const MAX_IMAGE_FILE_BYTES: u64 = 1 << 30;
-
-/// The bytes of a file of at most `limit` bytes; `what` names the kind of file for the
-/// message. Reads at most `limit + 1` bytes whatever the file claims to be (a device, a
-/// pipe, a file that grows), so an unexpected file cannot exhaust memory.
-///
-/// # Errors
-///
-/// [`Error::Io`] naming the file; [`Error::Format`] if it holds more than `limit` bytes.
-pub fn read_bytes(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
-    use std::io::Read;
-    let io_error = |cause| Error::Io {
-        path: path.to_path_buf(),
-        cause,
-    };
-    let file = fs::File::open(path).map_err(io_error)?;
-    if file.metadata().is_ok_and(|m| m.is_dir()) {
-        return Err(Error::Format {
-            path: path.to_path_buf(),
-            detail: format!("is a folder, not a {what}"),
-        });
-    }
-    let mut bytes = Vec::new();
-    file.take(limit.saturating_add(1))
-        .read_to_end(&mut bytes)
-        .map_err(io_error)?;
-    if bytes.len() as u64 > limit {
-        return Err(Error::Format {
-            path: path.to_path_buf(),
-            detail: format!("more than {limit} bytes, the most a {what} may hold"),
-        });
-    }
-    Ok(bytes)
-}
 
 /// Reads and decodes an image file in any format the `image` crate decodes here, guessing
 /// the format from the contents. The file is read whole first (so pipes work too), and the
@@ -225,7 +193,7 @@ pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
             detail: format!(
                 "a {w}x{h} image: at most {MAX_IMAGE_SIDE} pixels per side are read (the \
                  working size is at most {} anyway)",
-                crate::app::config::MAX_SIDE
+                crate::model::grid::MAX_SIDE
             ),
         });
     }

@@ -11,8 +11,9 @@ use image::{Delay, Frame, Rgb, RgbImage as Rgb8};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::io::images::{RgbImage, read_bytes, to_byte, write_atomically, write_png};
+use crate::io::images::{RgbImage, to_byte, write_atomically, write_png};
 use crate::model::grid::host_values;
+use crate::read::read_bytes;
 
 /// The name of frame `k` of `0..=k_max`: `frame_00.png`, or wider when `K ≥ 100`.
 pub fn frame_name(k: usize, k_max: usize) -> String {
@@ -334,7 +335,7 @@ pub fn load_field(header_path: &Path) -> Result<([usize; 4], Vec<f32>)> {
         ));
     }
     let [n, two, h, w] = header.shape;
-    let max_side = crate::app::config::MAX_SIDE;
+    let max_side = crate::model::grid::MAX_SIDE;
     if !(1..=MAX_FIELDS).contains(&n)
         || two != 2
         || !(1..=max_side).contains(&h)

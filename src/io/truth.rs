@@ -18,7 +18,8 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
-use crate::io::images::{MAX_IMAGE_SIDE, decode_image, read_bytes, write_atomically};
+use crate::io::images::{MAX_IMAGE_SIDE, decode_image, write_atomically};
+use crate::read::read_bytes;
 
 /// The `.flo` tag: the float32 202021.25, whose little-endian bytes spell `PIEH`.
 const FLO_TAG: &[u8; 4] = b"PIEH";

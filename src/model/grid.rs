@@ -6,6 +6,10 @@ use crate::backend::{Capabilities, Gather};
 use crate::error::{Error, Result};
 use crate::model::stencil::Matrix;
 
+/// Largest side a working size may have (a 16384² deep morph would need terabytes); saved
+/// fields with larger sides are refused as malformed.
+pub const MAX_SIDE: usize = 8192;
+
 /// An `H × W` pixel grid (SPEC §0: `H` rows, `W` columns, both at least 4) on a device, in
 /// one precision. Every tensor the library creates for the grid gets this device and dtype,
 /// so the same code runs in float32 on any backend and in float64 for gradient checks.

@@ -6,8 +6,10 @@
 use std::path::{Path, PathBuf};
 
 /// Each top-level module of `src/` and its rank: lower ranks are further down.
-const RANKS: [(&str, usize); 10] = [
+const RANKS: [(&str, usize); 11] = [
     ("error", 0),
+    ("read", 1),
+    ("fuzz", 0),
     ("backend", 1),
     ("model", 2),
     ("solver", 3),
@@ -16,7 +18,6 @@ const RANKS: [(&str, usize); 10] = [
     ("eval", 5),
     ("app", 6),
     ("check", 6),
-    ("fuzz", 6),
 ];
 
 fn rank(module: &str) -> Option<usize> {

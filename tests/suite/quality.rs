@@ -166,6 +166,11 @@ fn eval_and_warp_reject_bad_input_clearly() {
     };
     let err = warp("rotate", "170");
     assert!(err.contains("amount = 170"), "{err}");
+    let err = warp("rotate", "360");
+    assert!(
+        err.contains("amount = 360") && err.contains("-180 and 180"),
+        "{err}"
+    );
     let err = warp("twist", "1");
     assert!(err.contains("twist"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();

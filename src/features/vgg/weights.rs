@@ -65,7 +65,7 @@ impl Vgg19Weights {
     /// with it (not VGG19, which convolution is missing or has which shape, truncation).
     pub fn read(path: &Path) -> Result<Self> {
         // The whole VGG19 with its classifier is 548 MB in float32.
-        let bytes = crate::io::images::read_bytes(path, 2 << 30, "VGG19 weights file")?;
+        let bytes = crate::read::read_bytes(path, 2 << 30, "VGG19 weights file")?;
         Self::parse(path, bytes)
     }
 
