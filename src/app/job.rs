@@ -26,6 +26,7 @@ use crate::io::outputs::{
 };
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
+use crate::solver::ipalm::Schedule;
 use crate::solver::multilevel::{Morph, Multilevel};
 use crate::solver::observer::{Observer, Termination};
 
@@ -69,13 +70,17 @@ impl MorphJob {
         let multiple = config.size_multiple();
         let deep = config.deep.is_some();
         let channels = if deep { 3 + tap_channels()[0] } else { 3 };
-        let check_memory = |h: usize, w: usize| {
-            memory::check(
-                h,
-                w,
-                config.solver.steps,
+        let check_memory = |height: usize, width: usize| {
+            let plan = memory::Plan {
+                height,
+                width,
+                steps: config.solver.steps,
                 channels,
                 deep,
+                batched: config.solver.ipalm.schedule == Schedule::Batched,
+            };
+            memory::check(
+                &plan,
                 config.max_memory_gib,
                 config.backend != crate::Backend::Wgpu,
             )
