@@ -31,8 +31,10 @@ pub struct MultilevelConfig {
     /// Sweeps `J` per level: the most a level runs. Default 250.
     pub sweeps: usize,
     /// Convergence control: a level stops early once the relative decrease of `E` over the
-    /// last [`TOLERANCE_WINDOW`] joint sweeps falls below this. Default 0 (off: every level
-    /// runs its `J` sweeps; README, "Convergence control", says why).
+    /// last [`TOLERANCE_WINDOW`] joint sweeps falls below this; 0 = off (every level runs
+    /// its `J` sweeps). Default 1e-4: measured on the motorcycle at `J` = 250, 20 % less
+    /// time for the same endpoint error and 0.04 % more energy (README, "The solver at
+    /// work").
     pub tolerance: f64,
     /// The energy's parameters.
     pub params: EnergyParams,
@@ -49,7 +51,7 @@ impl Default for MultilevelConfig {
             steps: 15,
             levels: 5,
             sweeps: 250,
-            tolerance: 0.0,
+            tolerance: 1e-4,
             params: EnergyParams::rgb(),
             ipalm: IpalmConfig::default(),
         }

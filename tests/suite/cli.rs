@@ -194,7 +194,8 @@ fn interrupt_writes_outputs() {
     let binary = assert_cmd::cargo::cargo_bin("deepmorph");
     let mut child = std::process::Command::new(binary)
         .args([
-            "demo", "--size", "32", "-K", "3", "--levels", "2", "--sweeps", "1000000", "-q",
+            "demo", "--size", "32", "-K", "3", "--levels", "2", "--sweeps", "1000000", "--tol",
+            "0", "-q",
         ])
         .args(["--backend", "flex", "-o"])
         .arg(&out)

@@ -34,11 +34,19 @@ fn quick_demo(out: &Path, k: usize, extra: &[&str]) -> Command {
     cmd
 }
 
-/// A demo morph of 3 steps into `out` that runs until it is signalled.
+/// A demo morph of 3 steps into `out` that runs until it is signalled (no tolerance stop).
 fn endless_demo(out: &Path, extra: &[&str]) -> Child {
     std::process::Command::new(assert_cmd::cargo::cargo_bin("deepmorph"))
         .args(["demo", "--size", "32", "-K", "3", "--levels", "2", "-q"])
-        .args(["--sweeps", "1000000", "--backend", "flex", "-o"])
+        .args([
+            "--sweeps",
+            "1000000",
+            "--tol",
+            "0",
+            "--backend",
+            "flex",
+            "-o",
+        ])
         .arg(out)
         .args(extra)
         .stderr(Stdio::piped())
