@@ -448,3 +448,63 @@ fn untrusted_files_are_read_within_their_declared_size() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Unmounts a test's tmpfs whatever the test's outcome.
+struct Mounted(PathBuf);
+
+impl Drop for Mounted {
+    fn drop(&mut self) {
+        let _ = std::process::Command::new("umount").arg(&self.0).status();
+    }
+}
+
+/// A disk that fills up while the outputs are written (a 600 kB tmpfs, when the test runs as
+/// root): the run fails naming the file and the cause, the previous morph stays whole and no
+/// staging folder is left. Without root, a read-only parent is refused before any work.
+#[test]
+fn a_full_disk_fails_cleanly_and_keeps_the_previous_morph() {
+    let dir = scratch("full");
+    let root = std::process::Command::new("id")
+        .arg("-u")
+        .output()
+        .is_ok_and(|o| String::from_utf8_lossy(&o.stdout).trim() == "0");
+    let mounted = root
+        && std::process::Command::new("mount")
+            .args(["-t", "tmpfs", "-o", "size=600k", "tmpfs"])
+            .arg(&dir)
+            .status()
+            .is_ok_and(|s| s.success());
+    if root && !mounted {
+        // Root ignores permissions, so a read-only folder proves nothing either.
+        eprintln!("skipped: running as root where tmpfs cannot be mounted");
+        std::fs::remove_dir_all(&dir).unwrap();
+        return;
+    }
+    if !mounted {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o555)).unwrap();
+        let err = fails(&mut quick_demo(&dir.join("out"), 2, &[]));
+        std::fs::set_permissions(&dir, std::fs::Permissions::from_mode(0o755)).unwrap();
+        assert!(err.contains("cannot be written"), "{err}");
+        nothing_else_in(&dir, &[]);
+        std::fs::remove_dir_all(&dir).unwrap();
+        return;
+    }
+    let unmount = Mounted(dir.clone());
+    let out = dir.join("out");
+    quick_demo(&out, 2, &[]).assert().success();
+    // 31 frames and 30 fields of 64² (1 MB of deformations alone) do not fit.
+    let err = fails(
+        deepmorph()
+            .args([
+                "demo", "--size", "64", "-K", "30", "--levels", "1", "--sweeps", "1",
+            ])
+            .args(["-q", "--backend", "flex", "--force", "-o"])
+            .arg(&out),
+    );
+    assert!(err.contains("No space left"), "{err}");
+    holds_one_morph(&out, 2);
+    nothing_else_in(&dir, &["out"]);
+    drop(unmount);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
