@@ -54,6 +54,17 @@ fn endless_demo(out: &Path, extra: &[&str]) -> Child {
         .unwrap()
 }
 
+/// A folder `dir/out` holding a 6-step morph, and a forced 3-step run into it, two seconds in
+/// (solving, the staging folder beside `out`).
+fn running_over_a_previous_morph(name: &str) -> (PathBuf, PathBuf, Child) {
+    let dir = scratch(name);
+    let out = dir.join("out");
+    quick_demo(&out, 6, &[]).assert().success();
+    let child = endless_demo(&out, &["--force"]);
+    std::thread::sleep(Duration::from_secs(2));
+    (dir, out, child)
+}
+
 fn signal(child: &Child, name: &str) {
     let sent = std::process::Command::new("kill")
         .args([&format!("-{name}"), &child.id().to_string()])
@@ -158,11 +169,7 @@ fn an_unwritable_output_is_refused_before_any_work() {
 #[test]
 fn sigterm_and_sighup_write_outputs_like_ctrl_c() {
     for name in ["TERM", "HUP"] {
-        let dir = scratch(&format!("signal-{name}"));
-        let out = dir.join("out");
-        quick_demo(&out, 6, &[]).assert().success();
-        let mut child = endless_demo(&out, &["--force"]);
-        std::thread::sleep(Duration::from_secs(2));
+        let (dir, out, mut child) = running_over_a_previous_morph(&format!("signal-{name}"));
         signal(&child, name);
         assert_eq!(exit_code(&mut child), Some(130), "SIG{name}");
         holds_one_morph(&out, 3);
@@ -175,11 +182,7 @@ fn sigterm_and_sighup_write_outputs_like_ctrl_c() {
 /// new one, complete, and no staging folder is left.
 #[test]
 fn a_second_signal_aborts_without_mixing_two_runs() {
-    let dir = scratch("abort");
-    let out = dir.join("out");
-    quick_demo(&out, 6, &[]).assert().success();
-    let mut child = endless_demo(&out, &["--force"]);
-    std::thread::sleep(Duration::from_secs(2));
+    let (dir, out, mut child) = running_over_a_previous_morph("abort");
     signal(&child, "INT");
     signal(&child, "INT");
     assert_eq!(exit_code(&mut child), Some(130));
@@ -197,11 +200,7 @@ fn a_second_signal_aborts_without_mixing_two_runs() {
 /// stays beside it, and the next run into the same place removes it.
 #[test]
 fn a_killed_run_leaves_the_previous_morph_and_is_cleaned_up_next_time() {
-    let dir = scratch("kill");
-    let out = dir.join("out");
-    quick_demo(&out, 6, &[]).assert().success();
-    let mut child = endless_demo(&out, &["--force"]);
-    std::thread::sleep(Duration::from_secs(2));
+    let (dir, out, mut child) = running_over_a_previous_morph("kill");
     signal(&child, "KILL");
     assert_eq!(exit_code(&mut child), None);
     holds_one_morph(&out, 6);

@@ -32,6 +32,10 @@ use progress::{Progress, Verbosity};
 #[global_allocator]
 static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+/// Held while a morph's outputs are written: the signal handler's abort waits for no one and
+/// must not remove the staging folder under the writer.
+static WRITING: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// Exit status of an error: bad input, unreadable or unwritable files, no backend.
 const EXIT_ERROR: i32 = 1;
 /// Exit status of a morph stopped by a NaN or infinity in the optimisation; its outputs were
@@ -121,9 +125,15 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     // SIGINT, SIGTERM and SIGHUP alike (ctrlc's `termination` feature).
     ctrlc::set_handler(move || {
         if flag.swap(true, Ordering::SeqCst) {
-            // A second signal does not wait; the previous output, if any, is untouched.
-            let _ = std::fs::remove_dir_all(&staging);
-            std::process::exit(EXIT_INTERRUPTED);
+            // A second signal aborts, leaving the previous output as it was, unless the
+            // outputs are being written (a second or so): those are finished first, so the
+            // staging folder is never removed under the writer.
+            if let Ok(_not_writing) = WRITING.try_lock() {
+                let _ = std::fs::remove_dir_all(&staging);
+                std::process::exit(EXIT_INTERRUPTED);
+            }
+            eprintln!("\nthe outputs are being written; they will be complete in a moment");
+            return;
         }
         eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (signal again to abort)");
     })
@@ -156,7 +166,11 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     let mut progress = Progress::new(verbosity);
     let result = job.run(&mut progress, &interrupt)?;
     drop(progress);
+    let writing = WRITING
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let (metrics, out) = result.write(&job, folder)?;
+    drop(writing);
     let termination = &result.morph.termination;
     if let Termination::NonFinite { .. } = termination {
         eprintln!(
