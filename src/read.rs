@@ -15,6 +15,27 @@ use crate::error::{Error, Result};
 ///
 /// [`Error::Io`] naming the file; [`Error::Format`] if it holds more than `limit` bytes.
 pub fn read_bytes(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
+    let bytes = read_at_most(path, limit.saturating_add(1), what)?;
+    if bytes.len() as u64 > limit {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            detail: format!("more than {limit} bytes, the most a {what} may hold"),
+        });
+    }
+    Ok(bytes)
+}
+
+/// The first `n` bytes of a file (fewer if it is shorter): a header that says how much
+/// [`read_bytes`] may then read.
+///
+/// # Errors
+///
+/// [`Error::Io`] naming the file; [`Error::Format`] if it is a folder.
+pub fn read_prefix(path: &Path, n: u64, what: &str) -> Result<Vec<u8>> {
+    read_at_most(path, n, what)
+}
+
+fn read_at_most(path: &Path, n: u64, what: &str) -> Result<Vec<u8>> {
     use std::io::Read;
     let io_error = |cause| Error::Io {
         path: path.to_path_buf(),
@@ -28,14 +49,6 @@ pub fn read_bytes(path: &Path, limit: u64, what: &str) -> Result<Vec<u8>> {
         });
     }
     let mut bytes = Vec::new();
-    file.take(limit.saturating_add(1))
-        .read_to_end(&mut bytes)
-        .map_err(io_error)?;
-    if bytes.len() as u64 > limit {
-        return Err(Error::Format {
-            path: path.to_path_buf(),
-            detail: format!("more than {limit} bytes, the most a {what} may hold"),
-        });
-    }
+    file.take(n).read_to_end(&mut bytes).map_err(io_error)?;
     Ok(bytes)
 }

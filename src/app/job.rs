@@ -21,8 +21,8 @@ use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
 use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{
-    CONFIG, METRICS, contact_sheet, is_morph_output, output_names, save_composed,
-    save_deformations, write_frames, write_gif,
+    CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations,
+    write_frames, write_gif,
 };
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
@@ -163,11 +163,6 @@ impl MorphJob {
     /// The estimated peak memory in bytes.
     pub fn estimated_peak_bytes(&self) -> u64 {
         self.estimate
-    }
-
-    /// Every file name [`MorphResult::write`] writes.
-    pub fn output_names(&self) -> Vec<String> {
-        output_names(self.config.solver.steps)
     }
 
     /// Begins the output folder `dir` (see [`OutputFolder::begin`]): before the morph runs,

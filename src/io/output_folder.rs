@@ -143,11 +143,6 @@ impl OutputFolder {
         &self.staging
     }
 
-    /// The folder the outputs will be in, absolute.
-    pub fn target(&self) -> &Path {
-        &self.target
-    }
-
     /// Moves the staging folder into place, replacing a previous output; returns the target.
     ///
     /// # Errors

@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
 use crate::io::images::{MAX_IMAGE_SIDE, decode_image, write_atomically};
-use crate::read::read_bytes;
+use crate::read::{read_bytes, read_prefix};
 
 /// The `.flo` tag: the float32 202021.25, whose little-endian bytes spell `PIEH`.
 const FLO_TAG: &[u8; 4] = b"PIEH";
@@ -152,22 +152,21 @@ impl Correspondence {
             detail,
         };
         // The header says how much follows: read that much and one byte more, never more.
-        let expected = flo_size(&read_bytes_prefix(path, 12)?).map_err(bad)?;
-        let bytes = read_bytes(path, expected as u64, "flow file of that size")?;
+        let size = flo_size(&read_prefix(path, 12, "flow file")?).map_err(bad)?;
+        let bytes = read_bytes(path, flo_bytes(size) as u64, "flow file of that size")?;
         Self::from_flo_bytes(&bytes).map_err(bad)
     }
 
     /// A `.flo` file's contents (see [`Correspondence::read_flo`]).
     fn from_flo_bytes(bytes: &[u8]) -> std::result::Result<Self, String> {
-        let expected = flo_size(bytes)?;
+        let (h, w) = flo_size(bytes)?;
+        let expected = flo_bytes((h, w));
         if bytes.len() != expected {
             return Err(format!(
                 "{} bytes, a flow of this size needs {expected} (truncated or trailing data)",
                 bytes.len()
             ));
         }
-        let int = |at: usize| i32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes"));
-        let (w, h) = (int(4) as usize, int(8) as usize);
         let displacement = bytes[12..]
             .chunks_exact(8)
             .map(|p| {
@@ -282,8 +281,8 @@ impl Correspondence {
     }
 }
 
-/// The size in bytes of a `.flo` file with this header (its first 12 bytes).
-fn flo_size(header: &[u8]) -> std::result::Result<usize, String> {
+/// The size `(H, W)` a `.flo` header (a file's first 12 bytes) declares.
+fn flo_size(header: &[u8]) -> std::result::Result<(usize, usize), String> {
     if header.len() < 12 || &header[..4] != FLO_TAG {
         return Err("not a .flo file (no PIEH tag)".into());
     }
@@ -295,23 +294,12 @@ fn flo_size(header: &[u8]) -> std::result::Result<usize, String> {
             "implausible size {w}x{h} (sides from 1 to {MAX_IMAGE_SIDE})"
         ));
     }
-    Ok(12 + 8 * w as usize * h as usize)
+    Ok((h as usize, w as usize))
 }
 
-/// The first `n` bytes of a file (fewer if it is shorter).
-fn read_bytes_prefix(path: &Path, n: u64) -> Result<Vec<u8>> {
-    use std::io::Read;
-    let io_error = |cause| Error::Io {
-        path: path.to_path_buf(),
-        cause,
-    };
-    let mut bytes = Vec::new();
-    std::fs::File::open(path)
-        .map_err(io_error)?
-        .take(n)
-        .read_to_end(&mut bytes)
-        .map_err(io_error)?;
-    Ok(bytes)
+/// The bytes of a `.flo` file of `H × W`.
+fn flo_bytes((h, w): (usize, usize)) -> usize {
+    12 + 8 * h * w
 }
 
 #[cfg(test)]
