@@ -129,6 +129,12 @@ pub fn separable_adjoint(op: &Separable, y: Tensor<4>) -> Tensor<4> {
         .matmul(cols_t.swap_dims(2, 3))
 }
 
+/// `R` and `Cᵀ` of a [`Separable`] operator, `[1, 1, H', H]` and `[1, 1, W, W']`, for a dense
+/// reference product.
+pub fn separable_matrices(op: &Separable) -> (Tensor<4>, Tensor<4>) {
+    op.matrices()
+}
+
 /// Gaussian smoothing `G_s ∗` with mirror boundary on both axes (SPEC §3).
 pub fn gaussian_smoothing(grid: &Grid, s: f64) -> Separable {
     Separable::new(

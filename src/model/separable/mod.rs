@@ -1,4 +1,7 @@
-//! Separable linear operators on images, applied as two matrix products.
+//! Separable linear operators on images: `x ↦ R · x · Cᵀ` with 1-D matrices `R` and `C`.
+
+pub mod host;
+pub mod op;
 
 use burn::tensor::Tensor;
 
@@ -8,10 +11,12 @@ use crate::model::stencil::Matrix;
 /// A separable linear map `x ↦ R · x · Cᵀ` acting on the last two axes of a batch of maps:
 /// `R` (`H' × H`) on rows and `C` (`W' × W`) on columns.
 ///
-/// The 1-D matrices come from [`crate::model::stencil`] with the mirror boundary folded in. Two
-/// dense matmuls are exact for any stencil width, differentiate under autodiff as matmuls
-/// do, and run on every backend. They cost `2·C·H·W·(H + W)` flops against a banded
-/// stencil's `C·H·W·taps` (the `warp` benchmark includes the prefilter's share).
+/// The 1-D matrices come from [`crate::model::stencil`] with the mirror boundary folded in, so
+/// any stencil width is exact (a 13-tap Gaussian on 10 rows reflects twice). They are kept
+/// dense on the device; the op ([`op`]) applies them as two matmuls where that is the
+/// backend's strength (wgpu, ndarray) and as their nonzero bands on flex, `C·H·W·taps`
+/// multiply-adds instead of the dense `2·C·H·W·(H + W)` flops. Autodiff differentiates it
+/// through its adjoint `Rᵀ · g · C`.
 #[derive(Clone, Debug)]
 pub struct Separable {
     rows: Tensor<4>,
@@ -33,7 +38,7 @@ impl Separable {
     /// - `x`: `[N, C, H, W]`
     /// - output: `[N, C, H', W']`
     pub fn apply(&self, x: Tensor<4>) -> Tensor<4> {
-        self.rows.clone().matmul(x).matmul(self.cols_t.clone())
+        op::apply(x, self.rows.clone(), self.cols_t.clone())
     }
 
     /// `R` and `Cᵀ`, `[1, 1, H', H]` and `[1, 1, W, W']`.
