@@ -21,7 +21,7 @@ use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
 use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{
-    CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations,
+    CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations, write_apng,
     write_frames, write_gif,
 };
 use crate::model::feature_model::FeatureModel;
@@ -260,7 +260,7 @@ impl MorphResult {
     }
 
     /// Writes every output of SPEC §8 into `folder` and moves it into place (see
-    /// [`OutputFolder::commit`]): the frames, the GIF, the contact sheet, the deformations,
+    /// [`OutputFolder::commit`]): the frames, the GIF and APNG, the contact sheet, the deformations,
     /// the energy log, `config.json`, the composed map and `metrics.json`, which is computed
     /// from the files just written by the code of `deepmorph eval` (so both give the same
     /// numbers). Returns those metrics and the folder's path.
@@ -278,6 +278,12 @@ impl MorphResult {
         write_frames(dir, &self.frames)?;
         write_gif(
             &dir.join("morph.gif"),
+            &self.frames,
+            job.config.pingpong,
+            3.0,
+        )?;
+        write_apng(
+            &dir.join("morph.apng"),
             &self.frames,
             job.config.pingpong,
             3.0,

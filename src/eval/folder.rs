@@ -1,7 +1,7 @@
 //! Evaluating a finished morph from its output directory: what `deepmorph eval` runs and
 //! what every morph writes as `metrics.json`.
 //!
-//! It reads only files (the deformations, the first and last frame, `energy.csv`; the run's
+//! It reads only files (the deformations, the frames, `energy.csv`; the run's
 //! `config.json` must be there), so a morph evaluated at its end and the same folder
 //! evaluated later give the same numbers. The frames are the written 8-bit PNGs: the warp-consistency figures
 //! are those of what the user sees (8-bit rounding alone caps the PSNR near 59 dB).
@@ -28,6 +28,8 @@ pub struct MorphFolder {
     pub deformations: Tensor<4>,
     /// `u_0` and `u_K`, `[1, 3, H, W]`.
     pub endpoints: (Tensor<4>, Tensor<4>),
+    /// Every written frame `u_0..u_K`.
+    pub frames: Vec<RgbImage>,
     /// `energy.csv`.
     pub energy: EnergyLog,
     /// The working grid.
@@ -67,7 +69,7 @@ impl MorphFolder {
         let grid = Grid::new(h, w, device, Precision::F32.dtype())?;
         let deformations = grid.tensor(phi.into_iter().map(f64::from).collect(), shape);
 
-        let frame = |i: usize| -> Result<Tensor<4>> {
+        let frame = |i: usize| -> Result<RgbImage> {
             let name = frame_name(i, k);
             let image = RgbImage::load(&dir.join(&name))?;
             if (image.height(), image.width()) != (h, w) {
@@ -80,9 +82,10 @@ impl MorphFolder {
                     ),
                 ));
             }
-            image.to_tensor(&grid)
+            Ok(image)
         };
-        let endpoints = (frame(0)?, frame(k)?);
+        let frames = (0..=k).map(frame).collect::<Result<Vec<_>>>()?;
+        let endpoints = (frames[0].to_tensor(&grid)?, frames[k].to_tensor(&grid)?);
 
         let csv =
             String::from_utf8_lossy(&read_bytes(&dir.join("energy.csv"), 1 << 30, "energy log")?)
@@ -92,6 +95,7 @@ impl MorphFolder {
             steps: k,
             deformations,
             endpoints,
+            frames,
             energy,
             grid,
         })
@@ -118,6 +122,7 @@ impl MorphFolder {
             self.deformations.clone(),
             composed,
             self.endpoints.clone(),
+            &self.frames.iter().map(RgbImage::data).collect::<Vec<_>>(),
             &self.energy.records,
             truth,
         )

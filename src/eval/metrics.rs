@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::Result;
 use crate::io::energy_log::EnergyRecord;
+use crate::io::images::to_byte;
 use crate::io::truth::{Correspondence, EndpointError};
 use crate::model::deformation::jacobian;
 use crate::model::grid::Grid;
@@ -186,6 +187,106 @@ impl WarpConsistency {
     }
 }
 
+/// How far and how evenly a sequence of frames moves: the distance between adjacent frames,
+/// its sum (the path's length) and its spread.
+///
+/// Distances are RMS differences over pixels and channels, `‖u_k − u_{k−1}‖₂ / √(3·H·W)`,
+/// in the frames' `[0, 1]` colour units: a perceptual-path-length-like number in pixel
+/// space. (The PPL/PDV of the morphing literature use LPIPS, a learned distance whose network
+/// we do not download.)
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PathStats {
+    /// The distance of each step, `k = 1..K`.
+    pub adjacent: Vec<f64>,
+    /// `Σ_k` of the distances.
+    pub length: f64,
+    /// Population variance of the distances (0 for a path at constant speed).
+    pub variance: f64,
+    /// Standard deviation over mean of the distances: the variance without the scale
+    /// (0 when every step moves as far; 0 for a path that does not move).
+    pub relative_std: f64,
+}
+
+impl PathStats {
+    /// The statistics of `frames` (each `3·H·W` values, all the same length).
+    ///
+    /// # Panics
+    ///
+    /// If there are fewer than 2 frames or their lengths differ.
+    pub fn of(frames: &[&[f32]]) -> Self {
+        assert!(frames.len() >= 2, "a path needs 2 frames or more");
+        let adjacent: Vec<f64> = frames
+            .windows(2)
+            .map(|pair| {
+                assert_eq!(pair[0].len(), pair[1].len(), "frames of different sizes");
+                let sum: f64 = pair[0]
+                    .iter()
+                    .zip(pair[1])
+                    .map(|(&a, &b)| (f64::from(b) - f64::from(a)).powi(2))
+                    .sum();
+                (sum / pair[0].len() as f64).sqrt()
+            })
+            .collect();
+        let n = adjacent.len() as f64;
+        let length: f64 = adjacent.iter().sum();
+        let mean = length / n;
+        let variance = adjacent.iter().map(|d| (d - mean).powi(2)).sum::<f64>() / n;
+        let relative_std = if mean > 0.0 {
+            variance.sqrt() / mean
+        } else {
+            0.0
+        };
+        Self {
+            adjacent,
+            length,
+            variance,
+            relative_std,
+        }
+    }
+}
+
+/// The morph's path in pixel space ([`PathStats`]) beside the plain cross-fade
+/// `(1 − k/K) u_0 + (k/K) u_K` of its endpoints in the same number of steps, rounded to 8 bits
+/// as the written frames are.
+///
+/// In pixel space the cross-fade is the straight line, so its length is the least any path
+/// between the two endpoints can have and its steps are even (up to 8-bit rounding): a morph
+/// is longer by what its transport adds, and `relative_std` says how evenly it spends it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PathSmoothness {
+    /// The morph's frames `u_0..u_K`.
+    pub morph: PathStats,
+    /// The cross-fade of `u_0` and `u_K`.
+    pub crossfade: PathStats,
+}
+
+impl PathSmoothness {
+    /// The statistics of `frames` and of the cross-fade of its ends.
+    ///
+    /// # Panics
+    ///
+    /// As [`PathStats::of`].
+    pub fn of(frames: &[&[f32]]) -> Self {
+        let (first, last) = (frames[0], frames[frames.len() - 1]);
+        let steps = frames.len() - 1;
+        let crossfade: Vec<Vec<f32>> = (0..=steps)
+            .map(|k| {
+                let t = k as f32 / steps as f32;
+                first
+                    .iter()
+                    .zip(last)
+                    .map(|(&a, &b)| f32::from(to_byte((1.0 - t) * a + t * b)) / 255.0)
+                    .collect()
+            })
+            .collect();
+        let crossfade: Vec<&[f32]> = crossfade.iter().map(Vec::as_slice).collect();
+        Self {
+            morph: PathStats::of(frames),
+            crossfade: PathStats::of(&crossfade),
+        }
+    }
+}
+
 /// Every quality number of a morph (what `deepmorph eval` prints and `metrics.json` holds).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Metrics {
@@ -201,6 +302,8 @@ pub struct Metrics {
     pub levels: Vec<LevelEnergy>,
     /// `u_K ∘ Φ` against `u_0`.
     pub warp_consistency: WarpConsistency,
+    /// The frames' path against the cross-fade.
+    pub path: PathSmoothness,
     /// Endpoint error of `Φ` against a ground truth, in working-size pixels.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub endpoint_error: Option<EndpointError>,
@@ -212,7 +315,8 @@ pub struct Metrics {
 impl Metrics {
     /// Every quality number of the deformations `φ_1..φ_K` `[K, 2, H, W]`, their composition
     /// `composed` (`[1, 2, H, W]`, from [`compose`]) and the frames `(u_0, u_K)`
-    /// (`[1, 3, H, W]` each), with the level energies of `records`; with `truth` (and its
+    /// (`[1, 3, H, W]` each), with the level energies of `records` and the path of `frames`
+    /// (`u_0..u_K`, `3·H·W` values each, [`PathSmoothness`]); with `truth` (and its
     /// name), also the endpoint error of `Φ` against it, resampled to the working size
     /// ([`Correspondence::resampled`]).
     ///
@@ -224,6 +328,7 @@ impl Metrics {
         deformations: Tensor<4>,
         composed: Tensor<4>,
         (u_first, u_last): (Tensor<4>, Tensor<4>),
+        frames: &[&[f32]],
         records: &[EnergyRecord],
         truth: Option<(&Correspondence, &str)>,
     ) -> Result<Self> {
@@ -246,6 +351,7 @@ impl Metrics {
             composed_displacement: DisplacementStats::of(&displacement),
             levels: level_energies(records),
             warp_consistency: WarpConsistency::of(grid, u_first, u_last, composed)?,
+            path: PathSmoothness::of(frames),
             endpoint_error,
             truth: truth.map(|(_, name)| name.to_string()),
         })
@@ -305,6 +411,13 @@ impl std::fmt::Display for Metrics {
             "u_K o Phi vs u_0: mean |diff| {:.4}, PSNR {:.2} dB",
             self.warp_consistency.mean_abs_error, self.warp_consistency.psnr_db
         )?;
+        let (m, c) = (&self.path.morph, &self.path.crossfade);
+        writeln!(
+            f,
+            "path (RMS colour distance of adjacent frames): length {:.4}, variance {:.3e}, \
+             relative std {:.3} (cross-fade: length {:.4}, relative std {:.3})",
+            m.length, m.variance, m.relative_std, c.length, c.relative_std
+        )?;
         if let Some(e) = &self.endpoint_error {
             writeln!(
                 f,
@@ -335,6 +448,51 @@ mod tests {
         );
         // log det = 0, 1, 0 → std = sqrt(2/9).
         assert!((s.log_det_std - (2.0f64 / 9.0).sqrt()).abs() < 1e-15);
+    }
+
+    /// A blob moving at constant speed has even steps; the cross-fade of its ends is the
+    /// shortest path (its length is the endpoint distance) with even steps too.
+    #[test]
+    fn path_statistics_of_a_moving_blob_and_its_crossfade() {
+        let (h, w, steps) = (8, 16, 4);
+        let frame = |k: usize| -> Vec<f32> {
+            (0..3 * h * w)
+                .map(|i| {
+                    let col = i % w;
+                    if (2 * k..2 * k + 4).contains(&col) {
+                        1.0
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        };
+        let frames: Vec<Vec<f32>> = (0..=steps).map(frame).collect();
+        let views: Vec<&[f32]> = frames.iter().map(Vec::as_slice).collect();
+        let p = PathSmoothness::of(&views);
+        // Each step changes 2 + 2 columns of 16: RMS = sqrt(4/16) = 0.5.
+        assert_eq!(p.morph.adjacent, vec![0.5; steps]);
+        assert_eq!(
+            (p.morph.length, p.morph.variance, p.morph.relative_std),
+            (2.0, 0.0, 0.0)
+        );
+        // The ends differ in 8 of 16 columns by 1: distance sqrt(1/2); each cross-fade step
+        // a quarter of it (up to the 8-bit rounding of 0.25 and 0.75).
+        let end = 0.5f64.sqrt();
+        assert!(
+            (p.crossfade.length - end).abs() < 2e-3 * end,
+            "{}",
+            p.crossfade.length
+        );
+        assert!(
+            p.crossfade.relative_std < 1e-2,
+            "{}",
+            p.crossfade.relative_std
+        );
+        assert!(p.morph.length > p.crossfade.length);
+        // A path that stands still.
+        let still = PathStats::of(&[&views[0], &views[0]]);
+        assert_eq!((still.length, still.relative_std), (0.0, 0.0));
     }
 
     #[test]

@@ -341,10 +341,19 @@ impl DeformationProblem<'_> {
     /// The true local energy `e(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` summed for
     /// decisions (the safeguard's).
     fn local_energy(&self, phi: Tensor<4>) -> f64 {
+        let warped = self
+            .ipalm
+            .energy
+            .bspline()
+            .interpolate(self.coeffs_k.clone(), phi.clone());
+        self.local_energy_of(phi, warped)
+    }
+
+    /// [`local_energy`](Self::local_energy) with `T[f_k, φ]` already computed.
+    fn local_energy_of(&self, phi: Tensor<4>, warped: Tensor<4>) -> f64 {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
-        let bspline = ipalm.energy.bspline();
-        let residual = bspline.interpolate(self.coeffs_k.clone(), phi.clone()) - self.f_km1.clone();
+        let residual = warped - self.f_km1.clone();
         let data_scale = self.steps
             / (ipalm.energy.params().delta
                 * 2.0
@@ -525,13 +534,15 @@ impl Ipalm {
             deformation: Vec::new(),
             features: Vec::new(),
         };
+        // What the feature step of k computed that the deformation step of k + 1 needs.
+        let mut carried: Option<NextWarp> = None;
         for k in 1..=k_steps {
             if kind == SweepKind::Joint {
                 let rgb = self.layout.rgb_part(state.f[k].clone());
                 let a = self.energy.anisotropy().compute(rgb);
                 let [_, h, w] = a.dims();
                 let a = a.reshape([1, h, w]);
-                let (phi_new, step) = self.deformation_step(state, k, a.clone())?;
+                let (phi_new, step) = self.deformation_step(state, k, a.clone(), carried.take())?;
                 state.l_phi[k - 1] = step.lipschitz;
                 // Also after a restart: φ_k^prev ← φ_k, so the next sweep extrapolates along
                 // the restarted step, not the rejected direction (SPEC §6).
@@ -540,7 +551,8 @@ impl Ipalm {
                 report.deformation.push(step);
             }
             if k < k_steps {
-                let (f_new, step) = self.feature_step(state, k)?;
+                let (f_new, step, next) = self.feature_step(state, k)?;
+                carried = Some(next);
                 state.l_f[k - 1] = step.lipschitz.clone();
                 state.f_prev[k] = std::mem::replace(&mut state.f[k], f_new);
                 report.features.push(step);
@@ -550,16 +562,25 @@ impl Ipalm {
     }
 
     /// The deformation step of `k` (SPEC §6 step 2): returns `φ_new` and what happened.
+    ///
+    /// `carried`, from the feature step of `k − 1` in this sweep, holds `P f_k` and
+    /// `T[f_k, φ_k]` (neither changed since): the step starts from them instead of computing
+    /// them again, with the same values.
     fn deformation_step(
         &self,
         state: &LevelState,
         k: usize,
         a: Tensor<3>,
+        carried: Option<NextWarp>,
     ) -> Result<(Tensor<4>, DeformationStep)> {
+        let (coeffs_k, current_warp) = match carried {
+            Some(NextWarp { coeffs, warped }) => (coeffs, Some(warped)),
+            None => (self.energy.bspline().coefficients(state.f[k].clone()), None),
+        };
         let problem = DeformationProblem {
             ipalm: self,
             a,
-            coeffs_k: self.energy.bspline().coefficients(state.f[k].clone()),
+            coeffs_k,
             f_km1: state.f[k - 1].clone(),
             steps: state.steps() as f64,
         };
@@ -597,7 +618,10 @@ impl Ipalm {
         let mut accepted_l = search.lipschitz;
 
         if self.config.safeguard {
-            let current = problem.local_energy(phi.clone());
+            let current = match current_warp {
+                Some(warped) => problem.local_energy_of(phi.clone(), warped),
+                None => problem.local_energy(phi.clone()),
+            };
             let tolerance = self.slack() * current.abs();
             // Written so that a NaN energy counts as a rise.
             let rises = |e: f64| !(e <= current + tolerance);
@@ -635,7 +659,14 @@ impl Ipalm {
     }
 
     /// The feature step of `k < K` (SPEC §6 step 3), block by block: returns `f_new`.
-    fn feature_step(&self, state: &LevelState, k: usize) -> Result<(Tensor<4>, FeatureStep)> {
+    ///
+    /// Also returns `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]`, which the deformation step of
+    /// `k + 1` starts from.
+    fn feature_step(
+        &self,
+        state: &LevelState,
+        k: usize,
+    ) -> Result<(Tensor<4>, FeatureStep, NextWarp)> {
         let bspline = self.energy.bspline();
         let f_k = state.f[k].clone();
         let f_tilde = if self.config.beta > 0.0 {
@@ -647,10 +678,8 @@ impl Ipalm {
         // whole step: φ_k's stencil serves every block and trial, and T[f_{k+1}, φ_{k+1}] does
         // not depend on f_k at all.
         let sampler_k = bspline.sampler(state.phi[k - 1].clone());
-        let next_warped = bspline.interpolate(
-            bspline.coefficients(state.f[k + 1].clone()),
-            state.phi[k].clone(),
-        );
+        let next_coeffs = bspline.coefficients(state.f[k + 1].clone());
+        let next_warped = bspline.interpolate(next_coeffs.clone(), state.phi[k].clone());
 
         let mut blocks = Vec::new();
         let mut step = FeatureStep {
@@ -719,8 +748,19 @@ impl Ipalm {
             step.lipschitz.push(search.lipschitz);
             step.trials.push(search.trials);
         }
-        Ok((Tensor::cat(blocks, 1), step))
+        let next = NextWarp {
+            coeffs: next_coeffs,
+            warped: next_warped,
+        };
+        Ok((Tensor::cat(blocks, 1), step, next))
     }
+}
+
+/// `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` as the feature step of `k` computed them: within a
+/// sweep neither changes before the deformation step of `k + 1`, which needs both.
+struct NextWarp {
+    coeffs: Tensor<4>,
+    warped: Tensor<4>,
 }
 
 /// `Q` restricted to one channel block of `f_k` (SPEC §6 step 3):

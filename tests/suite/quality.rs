@@ -100,6 +100,21 @@ fn synthetic_pair_is_recovered_and_a_wrong_map_scores_badly() {
         m.deformations, at_end.deformations,
         "eval and morph disagree"
     );
+    assert_eq!(m.path, at_end.path, "eval and morph disagree on the path");
+    // K steps; the cross-fade is the straight line in pixel space, so no path of frames
+    // between the same (8-bit) endpoints is shorter, and its steps are even.
+    assert_eq!(m.path.morph.adjacent.len(), 4);
+    assert!(
+        m.path.morph.length >= m.path.crossfade.length * (1.0 - 1e-6),
+        "morph {:.5} vs cross-fade {:.5}",
+        m.path.morph.length,
+        m.path.crossfade.length
+    );
+    assert!(
+        m.path.crossfade.relative_std < 0.05,
+        "{:?}",
+        m.path.crossfade
+    );
     let epe = m.endpoint_error.clone().expect("endpoint error");
     eprintln!("{m}");
     assert_eq!(epe.pixels, 64 * 44);

@@ -182,7 +182,7 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     if !args.quiet {
         let last = result.energy.records.last().map_or(f64::NAN, |r| r.energy);
         eprintln!(
-            "{termination} in {:.1} s, final E = {last:.6e}; wrote {} frames, morph.gif, sheet.png, deformations, composed map, energy.csv, config.json, metrics.json to {}",
+            "{termination} in {:.1} s, final E = {last:.6e}; wrote {} frames, morph.gif, morph.apng, sheet.png, deformations, composed map, energy.csv, config.json, metrics.json to {}",
             result.seconds,
             config.solver.steps + 1,
             out.display()

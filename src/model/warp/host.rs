@@ -330,6 +330,124 @@ fn stencil<T: Real>(rows: &Axis, cols: &Axis, w: usize) -> ([usize; 16], [T; 16]
     (offset, weight)
 }
 
+// ---- many channels: channels-last ---------------------------------------------------------
+
+/// From this many channels on, the evaluation and its position gradient read the coefficients
+/// channels-last: a point's 16 neighbours are then 16 contiguous runs of `C` values (vector
+/// loads, a few cache lines) instead of `16·C` reads spread over `C` planes. The transposition
+/// costs one pass over the coefficients per call; below this it does not pay.
+const CHANNELS_LAST_FROM: usize = 8;
+
+/// One image's `C` planes of `plane` values, channels-last: `out[p·C + c] = planar[c·plane + p]`.
+fn channels_last<T: Real>(planar: &[T], c: usize, plane: usize) -> Vec<T> {
+    debug_assert_eq!(planar.len(), c * plane);
+    let mut out = vec![T::default(); planar.len()];
+    out.par_chunks_mut(c * PIXELS_PER_TASK)
+        .enumerate()
+        .for_each(|(chunk, dst)| {
+            let first = chunk * PIXELS_PER_TASK;
+            let pixels = dst.len() / c;
+            for ch in 0..c {
+                let src = &planar[ch * plane + first..ch * plane + first + pixels];
+                for (i, &v) in src.iter().enumerate() {
+                    dst[i * c + ch] = v;
+                }
+            }
+        });
+    out
+}
+
+/// `Σ_i a[i] · b[i]` in eight interleaved partial sums (vectorisable, and short dependency
+/// chains).
+#[inline]
+fn dot<T: Real>(a: &[T], b: &[T]) -> T {
+    let mut lanes = [T::default(); 8];
+    let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
+    let (a_rest, b_rest) = (a8.remainder(), b8.remainder());
+    for (x, y) in a8.zip(b8) {
+        for j in 0..8 {
+            lanes[j] += x[j] * y[j];
+        }
+    }
+    let mut sum = ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3]))
+        + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7]));
+    for (&x, &y) in a_rest.iter().zip(b_rest) {
+        sum += x * y;
+    }
+    sum
+}
+
+/// [`sample`] for many channels.
+fn sample_channels_last<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
+    let (points, plane, c) = (d.points(), d.h * d.w, d.c);
+    let tasks = points.div_ceil(PIXELS_PER_TASK);
+    let out = Shared(out.as_mut_ptr());
+    for b in 0..d.n {
+        let table = channels_last(&coeffs[b * c * plane..(b + 1) * c * plane], c, plane);
+        (0..tasks).into_par_iter().for_each(|chunk| {
+            let mut acc = vec![T::default(); c];
+            for p in chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(points) {
+                let (rows, cols) = point(phi, &d, b, p);
+                let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
+                acc.fill(T::default());
+                for k in 0..16 {
+                    let run = &table[offset[k] * c..(offset[k] + 1) * c];
+                    for (x, &v) in acc.iter_mut().zip(run) {
+                        *x += weight[k] * v;
+                    }
+                }
+                for (ch, &v) in acc.iter().enumerate() {
+                    // SAFETY: point p of image b is this task's alone.
+                    unsafe { out.write((b * c + ch) * points + p, v) };
+                }
+            }
+        });
+    }
+}
+
+/// [`sample_position_grad`] for many channels.
+fn position_grad_channels_last<T: Real>(
+    coeffs: &[T],
+    phi: &[T],
+    grad: &[T],
+    out: &mut [T],
+    d: Dims,
+) {
+    let (points, plane, c) = (d.points(), d.h * d.w, d.c);
+    let tasks = points.div_ceil(PIXELS_PER_TASK);
+    let out = Shared(out.as_mut_ptr());
+    for b in 0..d.n {
+        let table = channels_last(&coeffs[b * c * plane..(b + 1) * c * plane], c, plane);
+        let g = channels_last(&grad[b * c * points..(b + 1) * c * points], c, points);
+        (0..tasks).into_par_iter().for_each(|chunk| {
+            for p in chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(points) {
+                let (rows, cols) = point(phi, &d, b, p);
+                let gp = &g[p * c..(p + 1) * c];
+                // ⟨g, c_ab⟩ for each neighbour, then the two derivative stencils.
+                let (mut g0, mut g1) = (0.0, 0.0);
+                for a in 0..4 {
+                    for k in 0..4 {
+                        let at = rows.index[a] * d.w + cols.index[k];
+                        let v = dot(gp, &table[at * c..(at + 1) * c]).to_f64();
+                        g0 += rows.slope[a] * cols.weight[k] * v;
+                        g1 += rows.weight[a] * cols.slope[k] * v;
+                    }
+                }
+                let at = b * 2 * points + p;
+                let zero = T::default();
+                // SAFETY: point p of image b is this task's alone.
+                unsafe {
+                    out.write(at, if rows.inside { T::from_f64(g0) } else { zero });
+                    out.write(
+                        at + points,
+                        if cols.inside { T::from_f64(g1) } else { zero },
+                    );
+                }
+            }
+        });
+    }
+}
+
 /// `Σ_b weight[b] · line[index[b]]` as two independent pairs.
 #[inline]
 fn dot4<T: Real>(line: &[T], index: &[usize; 4], weight: &[T; 4]) -> T {
@@ -343,6 +461,9 @@ fn dot4<T: Real>(line: &[T], index: &[usize; 4], weight: &[T; 4]) -> T {
 /// `T = B(φ) c`: the spline with coefficients `coeffs` at the clamped points `phi`.
 pub fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
     d.check(coeffs.len(), phi, out.len());
+    if d.c >= CHANNELS_LAST_FROM {
+        return sample_channels_last(coeffs, phi, out, d);
+    }
     let (points, plane) = (d.points(), d.h * d.w);
     let tasks = points.div_ceil(PIXELS_PER_TASK);
     let out = Shared(out.as_mut_ptr());
@@ -368,6 +489,9 @@ pub fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
 pub fn sample_position_grad<T: Real>(coeffs: &[T], phi: &[T], grad: &[T], out: &mut [T], d: Dims) {
     d.check(coeffs.len(), phi, grad.len());
     assert_eq!(out.len(), phi.len(), "position gradient");
+    if d.c >= CHANNELS_LAST_FROM {
+        return position_grad_channels_last(coeffs, phi, grad, out, d);
+    }
     let (points, plane) = (d.points(), d.h * d.w);
     let tasks = points.div_ceil(PIXELS_PER_TASK);
     let out = Shared(out.as_mut_ptr());
@@ -405,9 +529,10 @@ pub fn sample_position_grad<T: Real>(coeffs: &[T], phi: &[T], grad: &[T], out: &
 /// `B(φ)ᵀ g`: the gradient of `⟨g, B(φ) c⟩` w.r.t. the coefficients, `[N, C, H, W]`.
 ///
 /// A scatter-add: each point adds into 16 coefficients, and points collide. The planes
-/// `(image, channel)` are independent; when there are fewer of them than twice the threads,
-/// each plane's points are split into parts that add into private copies, summed at the
-/// end, so that 3 RGB channels still keep every core busy.
+/// `(image, channel)` are independent: with many, tasks take groups of up to 8 channels of
+/// one image; when there are fewer planes than twice the threads, each plane's points are
+/// split into parts that add into private copies, summed at the end, so that 3 RGB channels
+/// still keep every core busy.
 pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
     d.check(out.len(), phi, grad.len());
     let (points, plane) = (d.points(), d.h * d.w);
@@ -435,12 +560,33 @@ pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
         }
     };
     if parts == 1 {
-        out.par_chunks_mut(plane)
-            .enumerate()
-            .for_each(|(pl, target)| {
-                target.fill(T::default());
-                scatter(target, pl, 0);
-            });
+        // Many planes: a task scatters a group of an image's channels, so that each point's
+        // stencil serves the whole group instead of being recomputed for every channel.
+        let group = (planes / (2 * threads)).clamp(1, 8);
+        let groups = d.c.div_ceil(group);
+        let base = Shared(out.as_mut_ptr());
+        (0..d.n * groups).into_par_iter().for_each(|task| {
+            let (b, first) = (task / groups, (task % groups) * group);
+            let channels = first..(first + group).min(d.c);
+            let planes_at = (b * d.c + channels.start) * plane;
+            // SAFETY: task (b, group) owns these planes of image b; tasks differ in one or
+            // the other.
+            let target = unsafe {
+                std::slice::from_raw_parts_mut(base.get(planes_at), channels.len() * plane)
+            };
+            target.fill(T::default());
+            for p in 0..points {
+                let (rows, cols) = point(phi, &d, b, p);
+                let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
+                for (i, ch) in channels.clone().enumerate() {
+                    let v = grad[(b * d.c + ch) * points + p];
+                    let target = &mut target[i * plane..(i + 1) * plane];
+                    for k in 0..16 {
+                        target[offset[k]] += weight[k] * v;
+                    }
+                }
+            }
+        });
         return;
     }
     let mut partial = vec![T::default(); planes * parts * plane];
@@ -518,11 +664,57 @@ mod tests {
         }
     }
 
+    /// For few channels (planar reads) and many (channels-last, with a remainder after the
+    /// 8-wide lanes of the dot products).
     #[test]
     fn the_adjoint_and_the_position_gradient_match_the_evaluation() {
+        for c in [3, CHANNELS_LAST_FROM + 3] {
+            adjoint_and_position_gradient_match(c);
+        }
+    }
+
+    /// Channels-last evaluation gives each plane what the planar one-channel kernel gives it.
+    #[test]
+    fn many_channels_evaluate_as_each_plane_alone() {
+        let c = CHANNELS_LAST_FROM + 5;
         let d = Dims {
             n: 2,
-            c: 3,
+            c,
+            h: 9,
+            w: 11,
+            ho: 7,
+            wo: 5,
+        };
+        let coeffs = ramp(d.n * c * d.h * d.w, 0.4);
+        let phi: Vec<f64> = (0..d.n * 2 * d.ho * d.wo)
+            .map(|i| (i as f64 * 0.731).rem_euclid(12.0) - 1.0)
+            .collect();
+        let mut all = vec![0.0; d.n * c * d.ho * d.wo];
+        sample(&coeffs, &phi, &mut all, d);
+        let one = Dims { n: 1, c: 1, ..d };
+        let (plane, points) = (d.h * d.w, d.ho * d.wo);
+        for b in 0..d.n {
+            let phi_b = &phi[b * 2 * points..(b + 1) * 2 * points];
+            for ch in 0..c {
+                let at = b * c + ch;
+                let mut alone = vec![0.0; points];
+                sample(
+                    &coeffs[at * plane..(at + 1) * plane],
+                    phi_b,
+                    &mut alone,
+                    one,
+                );
+                for (x, y) in all[at * points..(at + 1) * points].iter().zip(&alone) {
+                    assert!((x - y).abs() < 1e-13, "image {b}, channel {ch}: {x} vs {y}");
+                }
+            }
+        }
+    }
+
+    fn adjoint_and_position_gradient_match(c: usize) {
+        let d = Dims {
+            n: 2,
+            c,
             h: 9,
             w: 11,
             ho: 7,
