@@ -123,6 +123,10 @@ pub struct MorphConfig {
     pub backend: Backend,
     /// Whether the GIF plays forward and back.
     pub pingpong: bool,
+    /// Frames of the animations (GIF, APNG): `None` plays the `K + 1` computed frames, more
+    /// adds frames between them ([`crate::model::inbetween`]).
+    #[serde(default)]
+    pub animation_frames: Option<usize>,
     /// Refuse to start when the estimated peak memory exceeds this many GiB; `None`: the
     /// memory available now (CPU backends), no limit on wgpu.
     pub max_memory_gib: Option<f64>,
@@ -136,6 +140,7 @@ impl Default for MorphConfig {
             size: WorkingSize::Fit { max_side: 256 },
             backend: Backend::default_compiled().unwrap_or(Backend::Flex),
             pingpong: false,
+            animation_frames: None,
             max_memory_gib: None,
         }
     }
@@ -200,6 +205,17 @@ impl MorphConfig {
                     self.solver.levels,
                     "at most 5 for the deep model: VGG19 has taps at 1, 1/2, 1/4, 1/8 and 1/16 \
                      of the input size",
+                ));
+            }
+        }
+        if let Some(n) = self.animation_frames {
+            let least = self.solver.steps + 1;
+            let most = crate::model::inbetween::MAX_FRAMES.max(least);
+            if !(least..=most).contains(&n) {
+                return Err(Error::invalid(
+                    "frames",
+                    n,
+                    format!("at least K + 1 = {least} and at most {most}"),
                 ));
             }
         }

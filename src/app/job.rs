@@ -7,6 +7,9 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::AtomicBool;
 use std::time::Instant;
 
+use burn::tensor::Tensor;
+use image::RgbImage as Rgb8;
+
 use crate::app::config::{Inputs, MorphConfig, Outcome, RunRecord};
 use crate::app::demo::demo_pair;
 use crate::app::memory;
@@ -26,6 +29,7 @@ use crate::io::outputs::{
 };
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
+use crate::model::inbetween::Clip;
 use crate::solver::ipalm::Schedule;
 use crate::solver::multilevel::{Morph, Multilevel};
 use crate::solver::observer::{Observer, Termination};
@@ -273,18 +277,37 @@ impl MorphResult {
         Ok((metrics, folder.commit()?))
     }
 
+    /// The animations' frames, 8-bit: the computed frames, or `--frames N` of them with
+    /// in-between frames ([`Clip`]).
+    fn animation(&self, job: &MorphJob) -> Result<Vec<Rgb8>> {
+        let Some(count) = job.config.animation_frames else {
+            return Ok(self.frames.iter().map(RgbImage::to_rgb8).collect());
+        };
+        let grid = &self.morph.grid;
+        let frames = self
+            .frames
+            .iter()
+            .map(|f| f.to_tensor(grid))
+            .collect::<Result<Vec<_>>>()?;
+        let clip = Clip::new(
+            grid,
+            Tensor::cat(frames, 0),
+            self.morph.state.deformations(),
+            count,
+        )?;
+        (0..clip.len())
+            .map(|j| Ok(RgbImage::from_tensor(clip.frame(j))?.to_rgb8()))
+            .collect()
+    }
+
     fn write_files(&self, job: &MorphJob, dir: &Path) -> Result<Metrics> {
         let k = job.config.solver.steps;
         write_frames(dir, &self.frames)?;
-        write_gif(
-            &dir.join("morph.gif"),
-            &self.frames,
-            job.config.pingpong,
-            3.0,
-        )?;
+        let animation = self.animation(job)?;
+        write_gif(&dir.join("morph.gif"), &animation, job.config.pingpong, 3.0)?;
         write_apng(
             &dir.join("morph.apng"),
-            &self.frames,
+            &animation,
             job.config.pingpong,
             3.0,
         )?;

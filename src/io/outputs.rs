@@ -80,7 +80,7 @@ pub fn write_frames(dir: &Path, frames: &[RgbImage]) -> Result<()> {
 /// # Errors
 ///
 /// If the file cannot be encoded or written.
-pub fn write_gif(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64) -> Result<()> {
+pub fn write_gif(path: &Path, frames: &[Rgb8], pingpong: bool, seconds: f64) -> Result<()> {
     let order = animation_order(frames, pingpong);
     let delay_ms = ((seconds * 1000.0) / order.len() as f64).round().max(20.0) as u32;
     let mut bytes = Vec::new();
@@ -92,7 +92,7 @@ pub fn write_gif(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64)
         };
         encoder.set_repeat(Repeat::Infinite).map_err(gif_error)?;
         for frame in order {
-            let rgba = image::DynamicImage::ImageRgb8(frame.to_rgb8()).to_rgba8();
+            let rgba = image::DynamicImage::ImageRgb8(frame.clone()).to_rgba8();
             let delay = Delay::from_numer_denom_ms(delay_ms, 1);
             encoder
                 .encode_frame(Frame::from_parts(rgba, 0, 0, delay))
@@ -109,9 +109,9 @@ pub fn write_gif(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64)
 /// # Errors
 ///
 /// If the file cannot be encoded or written.
-pub fn write_apng(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64) -> Result<()> {
+pub fn write_apng(path: &Path, frames: &[Rgb8], pingpong: bool, seconds: f64) -> Result<()> {
     let order = animation_order(frames, pingpong);
-    let (width, height) = (frames[0].width() as u32, frames[0].height() as u32);
+    let (width, height) = frames[0].dimensions();
     // The delay as a fraction of a second with a millisecond denominator (u16 each).
     let delay_ms = ((seconds * 1000.0) / order.len() as f64)
         .round()
@@ -131,9 +131,7 @@ pub fn write_apng(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64
         encoder.set_frame_delay(delay_ms, 1000).map_err(png_error)?;
         let mut writer = encoder.write_header().map_err(png_error)?;
         for frame in order {
-            writer
-                .write_image_data(frame.to_rgb8().as_raw())
-                .map_err(png_error)?;
+            writer.write_image_data(frame.as_raw()).map_err(png_error)?;
         }
         writer.finish().map_err(png_error)?;
     }
@@ -142,8 +140,8 @@ pub fn write_apng(path: &Path, frames: &[RgbImage], pingpong: bool, seconds: f64
 
 /// The frames in the order an animation plays them: forward, then back to the second when
 /// `pingpong` (the first is not repeated: the loop returns to it).
-fn animation_order(frames: &[RgbImage], pingpong: bool) -> Vec<&RgbImage> {
-    let mut order: Vec<&RgbImage> = frames.iter().collect();
+fn animation_order(frames: &[Rgb8], pingpong: bool) -> Vec<&Rgb8> {
+    let mut order: Vec<&Rgb8> = frames.iter().collect();
     if pingpong && frames.len() > 2 {
         order.extend(frames[1..frames.len() - 1].iter().rev());
     }
@@ -461,12 +459,12 @@ mod tests {
     #[test]
     fn apng_holds_every_frame_losslessly() {
         let (h, w) = (5, 7);
-        let frames: Vec<RgbImage> = (0..4)
+        let frames: Vec<Rgb8> = (0..4)
             .map(|k| {
                 let data = (0..3 * h * w)
-                    .map(|i| ((i * 37 + k * 101) % 256) as f32 / 255.0)
+                    .map(|i| ((i * 37 + k * 101) % 256) as u8)
                     .collect();
-                RgbImage::new(h, w, data).unwrap()
+                Rgb8::from_raw(w as u32, h as u32, data).unwrap()
             })
             .collect();
         let dir = std::env::temp_dir().join(format!("deepmorph-apng-{}", std::process::id()));
@@ -487,7 +485,7 @@ mod tests {
                 assert_eq!((info.width, info.height), (w as u32, h as u32));
                 assert_eq!(
                     &buf[..info.buffer_size()],
-                    frames[k].to_rgb8().as_raw().as_slice()
+                    frames[k].as_raw().as_slice()
                 );
                 let fc = reader.info().frame_control.unwrap();
                 let seconds = f64::from(fc.delay_num) / f64::from(fc.delay_den);

@@ -13,6 +13,7 @@
 //! - [`params`]: the energy's parameters with SPEC §9's defaults.
 //! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6).
 //! - [`resample`]: bilinear resizing and prolongation between levels (SPEC §7).
+//! - [`inbetween`]: frames between the computed ones, for a smooth clip.
 //! - [`layout`], [`feature_model`]: the channels of a feature vector and the RGB or deep
 //!   feature vectors of each level (SPEC §4).
 
@@ -20,6 +21,7 @@ pub mod deformation;
 pub mod energy;
 pub mod feature_model;
 pub mod grid;
+pub mod inbetween;
 pub mod layout;
 pub mod params;
 pub mod resample;

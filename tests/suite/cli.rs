@@ -84,6 +84,58 @@ fn demo_writes_every_output() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// `--frames N` makes the animations N frames long, starting and ending on the computed
+/// frames; fewer than K + 1 is refused before any work.
+#[test]
+fn frames_sets_the_animation_length() {
+    let dir = scratch("frames");
+    let out = dir.join("out");
+    deepmorph()
+        .args(["demo", "--size", "32", "-q", "--frames", "10", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .assert()
+        .success();
+    let bytes = std::fs::read(out.join("morph.apng")).unwrap();
+    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
+        .read_info()
+        .unwrap();
+    assert_eq!(reader.info().animation_control.unwrap().num_frames, 10);
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let mut decoded = Vec::new();
+    for _ in 0..10 {
+        let info = reader.next_frame(&mut buf).unwrap();
+        decoded.push(buf[..info.buffer_size()].to_vec());
+    }
+    for (j, k) in [(0, 0), (9, 3)] {
+        let frame = RgbImage::load(&out.join(format!("frame_0{k}.png"))).unwrap();
+        assert_eq!(
+            decoded[j],
+            frame.to_rgb8().into_raw(),
+            "clip frame {j} is frame {k}"
+        );
+    }
+    // In between, a clip frame differs from both computed frames around it.
+    let first = RgbImage::load(&out.join("frame_00.png"))
+        .unwrap()
+        .to_rgb8()
+        .into_raw();
+    assert_ne!(decoded[1], first);
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    assert_eq!(config["config"]["animation_frames"], 10);
+
+    let err = fails(
+        deepmorph()
+            .args(["demo", "--size", "32", "-q", "--frames", "3", "-o"])
+            .arg(dir.join("refused"))
+            .args(TINY),
+    );
+    assert!(err.contains("frames") && err.contains("K + 1 = 4"), "{err}");
+    assert!(!dir.join("refused").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn morph_resizes_inputs_of_two_sizes() {
     let dir = scratch("morph");

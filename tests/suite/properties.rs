@@ -162,6 +162,55 @@ fn identity_prolongates_to_identity(backend: Backend, precision: Precision) {
     );
 }
 
+/// In-between frames (`model::inbetween`): `K + 1` of them are the frames themselves; on a
+/// blob translated by a constant `d` per step they move linearly, `s·d` into a step.
+fn inbetween_frames_move_linearly(backend: Backend, precision: Precision) {
+    use deepmorph::model::inbetween::inbetween;
+    let device = device(backend, precision, false);
+    let (h, w, steps) = (24, 40, 2);
+    let grid = grid(&device, precision, (h, w));
+    // A smooth blob whose centre moves 6 columns per step: u_k(x) = blob(x − (8 + 6k)).
+    let blob = |centre: f64| -> Vec<f64> {
+        (0..3 * h * w)
+            .map(|i| {
+                let (r, c) = (((i / w) % h) as f64, (i % w) as f64);
+                (-((r - 12.0).powi(2) + (c - centre).powi(2)) / 18.0).exp()
+            })
+            .collect()
+    };
+    let frames_host: Vec<f64> = (0..=steps)
+        .flat_map(|k| blob(8.0 + 6.0 * k as f64))
+        .collect();
+    let frames: Tensor<4> = grid.tensor(frames_host, [steps + 1, 3, h, w]);
+    // u_{k−1} = u_k ∘ φ_k with φ_k = Id + (0, 6): a constant shift of 6 columns.
+    let shift: Vec<f64> = (0..2 * h * w)
+        .map(|i| if i < h * w { 0.0 } else { 6.0 })
+        .collect();
+    let phi = grid.identity(steps) + grid.tensor(shift.repeat(steps), [steps, 2, h, w]);
+
+    let same = inbetween(&grid, frames.clone(), phi.clone(), steps + 1).unwrap();
+    assert_eq!(
+        values(same),
+        values(frames.clone()),
+        "K + 1 in-between frames are the frames"
+    );
+
+    // 5 frames: the centre at 8, 11, 14, 17, 20; compare with the blob there.
+    let clip = values(inbetween(&grid, frames, phi.clone(), 5).unwrap());
+    for j in 0..5 {
+        let want = blob(8.0 + 3.0 * j as f64);
+        // Away from the side columns (the mirror boundary shows there).
+        let got = &clip[j * 3 * h * w..(j + 1) * 3 * h * w];
+        let interior = |i: &usize| (4..w - 4).contains(&(i % w));
+        let err = (0..3 * h * w)
+            .filter(interior)
+            .map(|i| (got[i] - want[i]).abs())
+            .fold(0.0, f64::max);
+        assert!(err < 0.02, "frame {j}: max error {err}");
+    }
+    assert!(inbetween(&grid, grid.full([3, 3, h, w], 0.0), phi, 2).is_err());
+}
+
 macro_rules! in_both_precisions {
     ($($name:ident),* $(,)?) => {
         mod f32 {
@@ -183,4 +232,5 @@ in_both_precisions!(
     density_vanishes_at_identity,
     constant_path_has_zero_energy,
     identity_prolongates_to_identity,
+    inbetween_frames_move_linearly,
 );

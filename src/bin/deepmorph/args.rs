@@ -100,6 +100,10 @@ pub struct RunArgs {
     /// The GIF plays forward and back.
     #[arg(long)]
     pingpong: bool,
+    /// Frames of the animations (morph.gif, morph.apng): N >= K + 1 frames evenly along the
+    /// path, with frames rendered between the computed ones [default: K + 1].
+    #[arg(long, value_name = "N")]
+    frames: Option<usize>,
     /// Print nothing but errors.
     #[arg(short, long, conflicts_with = "verbose")]
     pub quiet: bool,
@@ -197,6 +201,7 @@ impl RunArgs {
         }
         config.backend = self.backend.unwrap_or(config.backend);
         config.pingpong |= self.pingpong;
+        config.animation_frames = self.frames.or(config.animation_frames);
         Ok((config, inputs))
     }
 }
