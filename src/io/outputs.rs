@@ -483,10 +483,7 @@ mod tests {
             for &k in &order {
                 let info = reader.next_frame(&mut buf).unwrap();
                 assert_eq!((info.width, info.height), (w as u32, h as u32));
-                assert_eq!(
-                    &buf[..info.buffer_size()],
-                    frames[k].as_raw().as_slice()
-                );
+                assert_eq!(&buf[..info.buffer_size()], frames[k].as_raw().as_slice());
                 let fc = reader.info().frame_control.unwrap();
                 let seconds = f64::from(fc.delay_num) / f64::from(fc.delay_den);
                 assert!(

@@ -673,18 +673,23 @@ mod tests {
         }
     }
 
-    /// Channels-last evaluation gives each plane what the planar one-channel kernel gives it.
-    #[test]
-    fn many_channels_evaluate_as_each_plane_alone() {
-        let c = CHANNELS_LAST_FROM + 5;
-        let d = Dims {
+    /// Two images of `c` channels, 9 × 11 coefficients sampled at 7 × 5 points.
+    fn small_dims(c: usize) -> Dims {
+        Dims {
             n: 2,
             c,
             h: 9,
             w: 11,
             ho: 7,
             wo: 5,
-        };
+        }
+    }
+
+    /// Channels-last evaluation gives each plane what the planar one-channel kernel gives it.
+    #[test]
+    fn many_channels_evaluate_as_each_plane_alone() {
+        let c = CHANNELS_LAST_FROM + 5;
+        let d = small_dims(c);
         let coeffs = ramp(d.n * c * d.h * d.w, 0.4);
         let phi: Vec<f64> = (0..d.n * 2 * d.ho * d.wo)
             .map(|i| (i as f64 * 0.731).rem_euclid(12.0) - 1.0)
@@ -712,14 +717,7 @@ mod tests {
     }
 
     fn adjoint_and_position_gradient_match(c: usize) {
-        let d = Dims {
-            n: 2,
-            c,
-            h: 9,
-            w: 11,
-            ho: 7,
-            wo: 5,
-        };
+        let d = small_dims(c);
         let coeffs = ramp(d.n * d.c * d.h * d.w, 0.1);
         // Points inside and outside the clamp range, and on grid lines.
         let phi: Vec<f64> = (0..d.n * 2 * d.ho * d.wo)
