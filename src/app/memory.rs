@@ -5,7 +5,8 @@
 //! flex backend, mimalloc, fused spline warp, 2-core Xeon, 2026-12-02, on `faces`
 //! (README, "Memory", has the table). Past a fixed part (the program; for the deep model
 //! also the VGG19 weights while they are read and loaded) it grows with the finest level's
-//! pixels (RGB: 400 bytes each; deep: VGG19's activations on the inputs, about 1 kB) and with
+//! pixels (RGB: 400 bytes each; deep: VGG19's activations on the inputs and the warp's
+//! channels-last copies of a 64-channel block, about 1.5 kB) and with
 //! `K · H · W · C`: 51 bytes per step, pixel and channel for RGB, 18.4 for the deep model
 //! (whose 64 feature channels go through the same few temporaries). The batched schedule
 //! holds every step's temporaries at once: its `K`-part is 4× (RGB) and 3× (deep) the
@@ -60,7 +61,7 @@ const RGB: Coefficients = Coefficients {
 
 const DEEP: Coefficients = Coefficients {
     base: 160e6,
-    per_pixel: 1000.0,
+    per_pixel: 1500.0,
     per_step_pixel_channel: 18.4,
     batched_factor: 3.0,
 };
@@ -161,8 +162,8 @@ mod tests {
         (80, 128, 8, 60, false, true, 74.6),
         (64, 64, 15, 2, true, false, 232.3),
         (128, 128, 15, 2, true, false, 386.6),
-        (256, 256, 15, 2, true, false, 1366.0),
-        (512, 512, 15, 2, true, false, 5096.0),
+        (256, 256, 15, 2, true, false, 1425.6), // channels-last warp buffers (+60 MB)
+        (512, 512, 15, 2, true, false, 5262.9), // (+167 MB)
         (128, 128, 4, 2, true, false, 230.2),
         (128, 128, 30, 2, true, false, 675.5),
         (128, 128, 8, 60, true, false, 274.5),
