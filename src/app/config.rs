@@ -209,15 +209,7 @@ impl MorphConfig {
             }
         }
         if let Some(n) = self.animation_frames {
-            let least = self.solver.steps + 1;
-            let most = crate::model::inbetween::MAX_FRAMES.max(least);
-            if !(least..=most).contains(&n) {
-                return Err(Error::invalid(
-                    "frames",
-                    n,
-                    format!("at least K + 1 = {least} and at most {most}"),
-                ));
-            }
+            crate::model::inbetween::check_count(self.solver.steps, n)?;
         }
         if let Some(gib) = self.max_memory_gib
             && !(gib.is_finite() && gib > 0.0)

@@ -30,6 +30,25 @@ pub fn position(j: usize, count: usize, steps: usize) -> (usize, f64) {
 /// The most frames a clip may have (20 s at 30 frames per second).
 pub const MAX_FRAMES: usize = 600;
 
+/// Checks that a clip of `count` frames fits a path of `steps` steps: `K + 1 ≤ count ≤`
+/// [`MAX_FRAMES`] (or `K + 1` when that is more).
+///
+/// # Errors
+///
+/// [`Error::InvalidParameter`] naming `frames` and the range.
+pub fn check_count(steps: usize, count: usize) -> Result<()> {
+    let (least, most) = (steps + 1, MAX_FRAMES.max(steps + 1));
+    if (least..=most).contains(&count) {
+        Ok(())
+    } else {
+        Err(Error::invalid(
+            "frames",
+            count,
+            format!("at least K + 1 = {least} (the frames the model computes) and at most {most}"),
+        ))
+    }
+}
+
 /// A clip of `count` frames evenly spaced along the path of `frames` and `deformations`
 /// (see the module's formula), rendered one frame at a time.
 #[derive(Clone, Debug)]
@@ -49,25 +68,14 @@ impl Clip {
     ///
     /// # Errors
     ///
-    /// [`Error::InvalidParameter`] unless `K + 1 ≤ count ≤` [`MAX_FRAMES`].
+    /// As [`check_count`].
     pub fn new(
         grid: &Grid,
         frames: Tensor<4>,
         deformations: Tensor<4>,
         count: usize,
     ) -> Result<Self> {
-        let steps = deformations.dims()[0];
-        if !(steps + 1..=MAX_FRAMES.max(steps + 1)).contains(&count) {
-            return Err(Error::invalid(
-                "frames",
-                count,
-                format!(
-                    "at least K + 1 = {} (the frames the model computes) and at most {}",
-                    steps + 1,
-                    MAX_FRAMES.max(steps + 1)
-                ),
-            ));
-        }
+        check_count(deformations.dims()[0], count)?;
         Ok(Self {
             bspline: BSpline::new(grid),
             identity: grid.identity(1),

@@ -60,9 +60,11 @@ impl<T: Real> Band<T> {
             .iter()
             .map(|&(first, _)| first.min(cols - width))
             .collect();
-        let values = (0..rows)
-            .flat_map(|i| (0..width).map(|t| (i, start[i] + t)).collect::<Vec<_>>())
-            .map(|(i, j)| entry(i, j))
+        let values = (0..rows * width)
+            .map(|at| {
+                let (i, t) = (at / width, at % width);
+                entry(i, start[i] + t)
+            })
             .collect();
         Self {
             rows,
@@ -71,16 +73,6 @@ impl<T: Real> Band<T> {
             start,
             values,
         }
-    }
-
-    /// Output length (the matrix's rows).
-    pub fn rows(&self) -> usize {
-        self.rows
-    }
-
-    /// Input length (the matrix's columns).
-    pub fn cols(&self) -> usize {
-        self.cols
     }
 
     /// Columns read per row.

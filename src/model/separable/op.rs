@@ -77,12 +77,7 @@ mod flex {
             "separable: operators {r:?} and {c:?} do not fit the maps {s:?}"
         );
         let (ho, h, w, wo) = (r[2], r[3], c[2], c[3]);
-        let values = |t: &TensorData| -> Vec<T> {
-            t.as_slice::<T>()
-                .expect("the operator shares the maps' dtype")
-                .to_vec()
-        };
-        let (r, c) = (values(&rows), values(&cols_t));
+        let (r, c) = (values::<T>(&rows), values::<T>(&cols_t));
         let rows = Band::new(ho, h, |i, j| r[i * h + j]);
         // `Cᵀ` is stored: C(j', j) = Cᵀ(j, j').
         let cols = Band::new(wo, w, |i, j| c[j * wo + i]);
@@ -92,6 +87,12 @@ mod flex {
             &cols,
         );
         TensorData::new(out, [s[0], s[1], ho, wo])
+    }
+
+    /// A matrix's entries, borrowed.
+    fn values<T: burn::tensor::Element>(t: &TensorData) -> &[T] {
+        t.as_slice::<T>()
+            .expect("the operator shares the maps' dtype")
     }
 
     impl SeparableOps for Flex {

@@ -546,19 +546,6 @@ pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
             .min(points.div_ceil(PIXELS_PER_TASK))
             .max(1)
     };
-    let per_part = points.div_ceil(parts);
-    let scatter = |target: &mut [T], pl: usize, part: usize| {
-        let b = pl / d.c;
-        let g = &grad[pl * points..(pl + 1) * points];
-        for p in part * per_part..((part + 1) * per_part).min(points) {
-            let (rows, cols) = point(phi, &d, b, p);
-            let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
-            let v = g[p];
-            for k in 0..16 {
-                target[offset[k]] += weight[k] * v;
-            }
-        }
-    };
     if parts == 1 {
         // Many planes: a task scatters a group of an image's channels, so that each point's
         // stencil serves the whole group instead of being recomputed for every channel.
@@ -589,6 +576,19 @@ pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
         });
         return;
     }
+    let per_part = points.div_ceil(parts);
+    let scatter = |target: &mut [T], pl: usize, part: usize| {
+        let b = pl / d.c;
+        let g = &grad[pl * points..(pl + 1) * points];
+        for p in part * per_part..((part + 1) * per_part).min(points) {
+            let (rows, cols) = point(phi, &d, b, p);
+            let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
+            let v = g[p];
+            for k in 0..16 {
+                target[offset[k]] += weight[k] * v;
+            }
+        }
+    };
     let mut partial = vec![T::default(); planes * parts * plane];
     partial
         .par_chunks_mut(plane)
