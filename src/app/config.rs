@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::backend::Backend;
 use crate::error::{Error, Result};
+use crate::io::animation::{DEFAULT_QUALITY, Playback, VideoFormat};
 use crate::model::feature_model::DeepConfig;
 use crate::model::params::EnergyParams;
 use crate::solver::multilevel::MultilevelConfig;
@@ -22,6 +23,47 @@ pub enum Model {
     Rgb,
     /// Images compared by VGG19 features (needs the weights).
     Deep,
+}
+
+/// A named set of the settings that trade time for quality (`--quality`): the working size,
+/// levels, sweeps per level, the deep model's feature-only sweeps and the tolerance. Flags
+/// given beside it override its values.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum Quality {
+    /// A quick look: at most 128 px, 3 levels × 60 sweeps, 15 feature-only sweeps, tolerance
+    /// 1e-3.
+    Draft,
+    /// The defaults: at most 256 px, 5 levels × 250 sweeps, 50 feature-only sweeps,
+    /// tolerance 1e-4.
+    Standard,
+    /// The paper's setting (SPEC §9) at 512 px: 5 levels × 250 sweeps, 50 feature-only
+    /// sweeps, every sweep run (no tolerance).
+    Paper,
+}
+
+impl Quality {
+    /// `(longest side, levels, sweeps, feature-only sweeps, tolerance)`.
+    fn settings(self) -> (usize, usize, usize, usize, f64) {
+        match self {
+            Quality::Draft => (128, 3, 60, 15, 1e-3),
+            Quality::Standard => (256, 5, 250, 50, 1e-4),
+            Quality::Paper => (512, 5, 250, 50, 0.0),
+        }
+    }
+
+    /// Sets this preset's values in `config` (the deep model's only if it is the deep model).
+    pub fn apply(self, config: &mut MorphConfig) {
+        let (max_side, levels, sweeps, pre_sweeps, tolerance) = self.settings();
+        config.size = WorkingSize::Fit { max_side };
+        config.solver.levels = levels;
+        config.solver.sweeps = sweeps;
+        config.solver.tolerance = tolerance;
+        if let Some(deep) = &mut config.deep {
+            deep.features.pre_sweeps = pre_sweeps;
+        }
+    }
 }
 
 /// The deep model's settings: the weights file and the feature settings.
@@ -121,8 +163,19 @@ pub struct MorphConfig {
     pub size: WorkingSize,
     /// The compute backend.
     pub backend: Backend,
-    /// Whether the GIF plays forward and back.
+    /// Whether the animations play forward and back.
     pub pingpong: bool,
+    /// Which animations are written (`--video`); runs recorded before it existed wrote the
+    /// GIF and APNG and read back as every format this build has.
+    #[serde(default = "VideoFormat::defaults")]
+    pub video: Vec<VideoFormat>,
+    /// Frames per second of the animations; `None`: each lasts
+    /// [`crate::io::animation::DEFAULT_SECONDS`].
+    #[serde(default)]
+    pub fps: Option<f64>,
+    /// The MP4's H.264 quantiser, 0 (best) to 51 (smallest) (`--crf`).
+    #[serde(default = "default_quality")]
+    pub crf: u8,
     /// Frames of the animations (GIF, APNG): `None` plays the `K + 1` computed frames, more
     /// adds frames between them ([`crate::model::inbetween`]).
     #[serde(default)]
@@ -140,13 +193,30 @@ impl Default for MorphConfig {
             size: WorkingSize::Fit { max_side: 256 },
             backend: Backend::default_compiled().unwrap_or(Backend::Flex),
             pingpong: false,
+            video: VideoFormat::defaults(),
+            fps: None,
+            crf: DEFAULT_QUALITY,
             animation_frames: None,
             max_memory_gib: None,
         }
     }
 }
 
+fn default_quality() -> u8 {
+    DEFAULT_QUALITY
+}
+
 impl MorphConfig {
+    /// How the animations are written.
+    pub fn playback(&self) -> Playback {
+        Playback {
+            formats: self.video.clone(),
+            pingpong: self.pingpong,
+            fps: self.fps,
+            quality: self.crf,
+        }
+    }
+
     /// The deep model with SPEC §9's deep column and the weights in `vgg19`.
     pub fn deep(vgg19: impl Into<PathBuf>) -> Self {
         let mut config = Self::default();
@@ -208,6 +278,7 @@ impl MorphConfig {
                 ));
             }
         }
+        self.playback().validate()?;
         if let Some(n) = self.animation_frames {
             crate::model::inbetween::check_count(self.solver.steps, n)?;
         }
@@ -313,6 +384,27 @@ mod tests {
             let back: MorphConfig = serde_json::from_str(&json).unwrap();
             assert_eq!(back, config);
         }
+    }
+
+    /// `standard` is the defaults; `paper` is SPEC §9 at 512 px with every sweep run.
+    #[test]
+    fn presets_set_what_they_say() {
+        let mut standard = MorphConfig::deep("vgg19.onnx");
+        Quality::Standard.apply(&mut standard);
+        assert_eq!(standard, MorphConfig::deep("vgg19.onnx"));
+        let mut paper = MorphConfig::deep("vgg19.onnx");
+        Quality::Paper.apply(&mut paper);
+        assert_eq!(paper.size, WorkingSize::Fit { max_side: 512 });
+        assert_eq!(
+            (paper.solver.steps, paper.solver.levels, paper.solver.sweeps),
+            (15, 5, 250)
+        );
+        assert_eq!(paper.solver.tolerance, 0.0);
+        assert_eq!(paper.deep.as_ref().unwrap().features.pre_sweeps, 50);
+        let mut draft = MorphConfig::default();
+        Quality::Draft.apply(&mut draft);
+        draft.validate().unwrap();
+        assert_eq!((draft.solver.levels, draft.solver.sweeps), (3, 60));
     }
 
     #[test]

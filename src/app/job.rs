@@ -24,8 +24,7 @@ use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
 use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{
-    CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations, write_apng,
-    write_frames, write_gif,
+    CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations, write_frames,
 };
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
@@ -42,6 +41,7 @@ pub struct MorphJob {
     images: (RgbImage, RgbImage),
     notes: Vec<String>,
     estimate: u64,
+    estimate_time: bool,
     inject_nonfinite: Option<(usize, usize)>,
 }
 
@@ -133,6 +133,7 @@ impl MorphJob {
             images,
             notes,
             estimate,
+            estimate_time: false,
             inject_nonfinite: None,
         })
     }
@@ -141,6 +142,13 @@ impl MorphJob {
     #[doc(hidden)]
     pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
         self.inject_nonfinite = Some((level, sweep));
+        self
+    }
+
+    /// Before the morph, time a few sweeps on two of its levels and report the predicted
+    /// time to the observer ([`Observer::estimate`]; see [`crate::solver::estimate`]).
+    pub fn estimate_time(mut self, yes: bool) -> Self {
+        self.estimate_time = yes;
         self
     }
 
@@ -214,6 +222,9 @@ impl MorphJob {
         if let Some((level, sweep)) = self.inject_nonfinite {
             driver = driver.inject_nonfinite(level, sweep);
         }
+        if self.estimate_time {
+            observer.estimate(&driver.estimate_time(&device, &u_a, &u_b, &model)?);
+        }
         let started = Instant::now();
         let mut energy = EnergyLog::default();
         let morph = driver.run_with(
@@ -264,7 +275,7 @@ impl MorphResult {
     }
 
     /// Writes every output of SPEC §8 into `folder` and moves it into place (see
-    /// [`OutputFolder::commit`]): the frames, the GIF and APNG, the contact sheet, the deformations,
+    /// [`OutputFolder::commit`]): the frames, the animations (`--video`), the contact sheet, the deformations,
     /// the energy log, `config.json`, the composed map and `metrics.json`, which is computed
     /// from the files just written by the code of `deepmorph eval` (so both give the same
     /// numbers). Returns those metrics and the folder's path.
@@ -304,13 +315,7 @@ impl MorphResult {
         let k = job.config.solver.steps;
         write_frames(dir, &self.frames)?;
         let animation = self.animation(job)?;
-        write_gif(&dir.join("morph.gif"), &animation, job.config.pingpong, 3.0)?;
-        write_apng(
-            &dir.join("morph.apng"),
-            &animation,
-            job.config.pingpong,
-            3.0,
-        )?;
+        job.config.playback().write(dir, &animation)?;
         let deformations = self.morph.state.deformations();
         let displacement = deformations.clone() - self.morph.grid.identity(k);
         let sheet = contact_sheet(&self.frames, self.morph.anisotropy.clone(), displacement)?;

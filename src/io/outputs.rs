@@ -6,8 +6,7 @@
 use std::path::Path;
 
 use burn::tensor::Tensor;
-use image::codecs::gif::{GifEncoder, Repeat};
-use image::{Delay, Frame, Rgb, RgbImage as Rgb8};
+use image::{Rgb, RgbImage as Rgb8};
 use serde::{Deserialize, Serialize};
 
 use crate::error::{Error, Result};
@@ -28,6 +27,7 @@ pub fn output_names(k: usize) -> Vec<String> {
         [
             "morph.gif",
             "morph.apng",
+            "morph.mp4",
             "sheet.png",
             DEFORMATIONS_HEADER,
             DEFORMATIONS_DATA,
@@ -72,80 +72,6 @@ pub fn write_frames(dir: &Path, frames: &[RgbImage]) -> Result<()> {
         write_png(&dir.join(frame_name(i, k)), &frame.to_rgb8())?;
     }
     Ok(())
-}
-
-/// Writes an endlessly looping GIF of the frames, forward, or forward then back when
-/// `pingpong`; the whole animation lasts about `seconds`.
-///
-/// # Errors
-///
-/// If the file cannot be encoded or written.
-pub fn write_gif(path: &Path, frames: &[Rgb8], pingpong: bool, seconds: f64) -> Result<()> {
-    let order = animation_order(frames, pingpong);
-    let delay_ms = ((seconds * 1000.0) / order.len() as f64).round().max(20.0) as u32;
-    let mut bytes = Vec::new();
-    {
-        let mut encoder = GifEncoder::new_with_speed(&mut bytes, 10);
-        let gif_error = |e| Error::Image {
-            path: path.to_path_buf(),
-            cause: e,
-        };
-        encoder.set_repeat(Repeat::Infinite).map_err(gif_error)?;
-        for frame in order {
-            let rgba = image::DynamicImage::ImageRgb8(frame.clone()).to_rgba8();
-            let delay = Delay::from_numer_denom_ms(delay_ms, 1);
-            encoder
-                .encode_frame(Frame::from_parts(rgba, 0, 0, delay))
-                .map_err(gif_error)?;
-        }
-    }
-    write_atomically(path, |w| w.write_all(&bytes))
-}
-
-/// Writes an endlessly looping animated PNG of the frames (forward, or forward then back
-/// when `pingpong`), lasting about `seconds`: lossless 24-bit colour, so unlike the GIF's
-/// 256-colour palette it shows smooth gradients without banding.
-///
-/// # Errors
-///
-/// If the file cannot be encoded or written.
-pub fn write_apng(path: &Path, frames: &[Rgb8], pingpong: bool, seconds: f64) -> Result<()> {
-    let order = animation_order(frames, pingpong);
-    let (width, height) = frames[0].dimensions();
-    // The delay as a fraction of a second with a millisecond denominator (u16 each).
-    let delay_ms = ((seconds * 1000.0) / order.len() as f64)
-        .round()
-        .clamp(20.0, 65535.0) as u16;
-    let png_error = |e: png::EncodingError| Error::Io {
-        path: path.to_path_buf(),
-        cause: std::io::Error::other(e),
-    };
-    let mut bytes = Vec::new();
-    {
-        let mut encoder = png::Encoder::new(&mut bytes, width, height);
-        encoder.set_color(png::ColorType::Rgb);
-        encoder.set_depth(png::BitDepth::Eight);
-        encoder
-            .set_animated(order.len() as u32, 0)
-            .map_err(png_error)?;
-        encoder.set_frame_delay(delay_ms, 1000).map_err(png_error)?;
-        let mut writer = encoder.write_header().map_err(png_error)?;
-        for frame in order {
-            writer.write_image_data(frame.as_raw()).map_err(png_error)?;
-        }
-        writer.finish().map_err(png_error)?;
-    }
-    write_atomically(path, |w| w.write_all(&bytes))
-}
-
-/// The frames in the order an animation plays them: forward, then back to the second when
-/// `pingpong` (the first is not repeated: the loop returns to it).
-fn animation_order(frames: &[Rgb8], pingpong: bool) -> Vec<&Rgb8> {
-    let mut order: Vec<&Rgb8> = frames.iter().collect();
-    if pingpong && frames.len() > 2 {
-        order.extend(frames[1..frames.len() - 1].iter().rev());
-    }
-    order
 }
 
 /// The colour of a displacement `(d_row, d_col)` scaled by `max`: hue = direction (right =
@@ -452,47 +378,6 @@ mod tests {
         ] {
             assert!(!is_morph_output(name), "{name}");
         }
-    }
-
-    /// The APNG decodes to the frames in play order, losslessly (every 8-bit value), loops
-    /// forever and shares the duration out.
-    #[test]
-    fn apng_holds_every_frame_losslessly() {
-        let (h, w) = (5, 7);
-        let frames: Vec<Rgb8> = (0..4)
-            .map(|k| {
-                let data = (0..3 * h * w)
-                    .map(|i| ((i * 37 + k * 101) % 256) as u8)
-                    .collect();
-                Rgb8::from_raw(w as u32, h as u32, data).unwrap()
-            })
-            .collect();
-        let dir = std::env::temp_dir().join(format!("deepmorph-apng-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).unwrap();
-        let path = dir.join("morph.apng");
-        for (pingpong, order) in [(false, vec![0, 1, 2, 3]), (true, vec![0, 1, 2, 3, 2, 1])] {
-            write_apng(&path, &frames, pingpong, 3.0).unwrap();
-            let decoder = png::Decoder::new(std::io::Cursor::new(std::fs::read(&path).unwrap()));
-            let mut reader = decoder.read_info().unwrap();
-            let control = reader.info().animation_control.unwrap();
-            assert_eq!(
-                (control.num_frames, control.num_plays),
-                (order.len() as u32, 0)
-            );
-            let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-            for &k in &order {
-                let info = reader.next_frame(&mut buf).unwrap();
-                assert_eq!((info.width, info.height), (w as u32, h as u32));
-                assert_eq!(&buf[..info.buffer_size()], frames[k].as_raw().as_slice());
-                let fc = reader.info().frame_control.unwrap();
-                let seconds = f64::from(fc.delay_num) / f64::from(fc.delay_den);
-                assert!(
-                    (seconds * order.len() as f64 - 3.0).abs() < 0.01,
-                    "{seconds}"
-                );
-            }
-        }
-        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     /// A deformation header and its values, `[1, 2, 2, 3]`.

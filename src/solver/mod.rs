@@ -9,10 +9,12 @@
 //!   blocks ([`ipalm::Schedule`]).
 //! - [`multilevel`]: the pyramid, prolongation, the deep model's feature-only sweeps, the
 //!   loop over sweeps and its termination.
+//! - [`estimate`]: how long a morph will take, from sweeps timed on two of its levels.
 //! - [`observer`]: what the driver reports after each sweep, and to whom.
 
 pub mod backtracking;
 mod batched;
+pub mod estimate;
 pub mod ipalm;
 pub mod multilevel;
 pub mod observer;

@@ -154,6 +154,33 @@ impl Morph {
     }
 }
 
+/// The channel layout and the endpoint feature vectors `f_A`, `f_B` of the level on `grid`,
+/// `1/2^downsampling` of the working grid `full` (SPEC §4, §7).
+///
+/// # Errors
+///
+/// In the deep model, if no VGG tap has that size.
+pub(crate) fn level_endpoints(
+    model: &FeatureModel,
+    full: &Grid,
+    grid: &Grid,
+    u_a: &Tensor<4>,
+    u_b: &Tensor<4>,
+    downsampling: usize,
+) -> Result<(FeatureLayout, Tensor<4>, Tensor<4>)> {
+    let layout = model.layout(downsampling)?;
+    let resize = Resize::new(full, grid);
+    let (u_a, u_b) = (resize.apply(u_a.clone()), resize.apply(u_b.clone()));
+    let (f_a, f_b) = match model {
+        FeatureModel::Rgb => (u_a, u_b),
+        FeatureModel::Deep(deep) => {
+            let (tap_a, tap_b) = deep.maps(downsampling)?;
+            (deep.stack(u_a, tap_a), deep.stack(u_b, tap_b))
+        }
+    };
+    Ok((layout, f_a, f_b))
+}
+
 /// The multilevel driver.
 #[derive(Clone, Debug)]
 pub struct Multilevel {
@@ -247,17 +274,9 @@ impl Multilevel {
         let mut summaries = Vec::with_capacity(sizes.len());
         for (level, &(lh, lw)) in sizes.iter().enumerate() {
             let downsampling = sizes.len() - 1 - level;
-            let layout = model.layout(downsampling)?;
             let grid = Grid::new(lh, lw, device, dtype)?;
-            let resize = Resize::new(&full, &grid);
-            let (u_a_level, u_b_level) = (resize.apply(u_a.clone()), resize.apply(u_b.clone()));
-            let (f_a, f_b) = match model {
-                FeatureModel::Rgb => (u_a_level, u_b_level),
-                FeatureModel::Deep(deep) => {
-                    let (tap_a, tap_b) = deep.maps(downsampling)?;
-                    (deep.stack(u_a_level, tap_a), deep.stack(u_b_level, tap_b))
-                }
-            };
+            let (layout, f_a, f_b) =
+                level_endpoints(model, &full, &grid, &u_a, &u_b, downsampling)?;
             let prolongated = previous.is_some();
             let mut state = match previous.take() {
                 None => LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,

@@ -3,6 +3,7 @@
 //! never prints.
 
 use crate::model::grid::Grid;
+use crate::solver::estimate::TimeEstimate;
 use crate::solver::ipalm::{LevelState, SweepReport};
 
 /// Which sweeps an event belongs to.
@@ -90,6 +91,9 @@ pub struct LevelSummary {
 pub trait Observer {
     /// After the initial state of a level (sweep 0) and after every sweep.
     fn sweep(&mut self, event: &SweepEvent<'_>);
+
+    /// Before the first level, when the run was asked to estimate its time.
+    fn estimate(&mut self, _estimate: &TimeEstimate) {}
 }
 
 /// An observer that does nothing.
@@ -101,6 +105,10 @@ impl<T: Observer + ?Sized> Observer for &mut T {
     fn sweep(&mut self, event: &SweepEvent<'_>) {
         (**self).sweep(event);
     }
+
+    fn estimate(&mut self, estimate: &TimeEstimate) {
+        (**self).estimate(estimate);
+    }
 }
 
 /// Two observers, called in order.
@@ -108,6 +116,11 @@ impl<A: Observer, B: Observer> Observer for (A, B) {
     fn sweep(&mut self, event: &SweepEvent<'_>) {
         self.0.sweep(event);
         self.1.sweep(event);
+    }
+
+    fn estimate(&mut self, estimate: &TimeEstimate) {
+        self.0.estimate(estimate);
+        self.1.estimate(estimate);
     }
 }
 

@@ -673,3 +673,120 @@ fn deep_morph_with_the_stand_in_weights() {
     assert_eq!(log.records.len(), 2 * 4);
     std::fs::remove_dir_all(dir).ok();
 }
+
+/// `--video`, `--fps` and `--crf`: only the chosen animations are written; the MP4 holds
+/// one H.264 sample per frame, each lasting 1/fps; where `ffprobe` is installed (CI installs
+/// it: `DEEPMORPH_REQUIRE_FFPROBE=1`), an independent decoder agrees.
+#[test]
+fn video_formats_rate_and_quality() {
+    let dir = scratch("video");
+    let out = dir.join("out");
+    deepmorph()
+        .args(["demo", "--size", "32", "-q", "--frames", "10"])
+        .args(["--video", "mp4,apng", "--fps", "8", "--crf", "30", "-o"])
+        .arg(&out)
+        .args(TINY)
+        .assert()
+        .success();
+    assert!(out.join("morph.apng").is_file() && !out.join("morph.gif").exists());
+    let bytes = std::fs::read(out.join("morph.mp4")).unwrap();
+    let mp4 = deepmorph::io::mp4::inspect(&bytes).unwrap();
+    assert_eq!((mp4.width, mp4.height), (32, 32));
+    assert_eq!(mp4.samples.len(), 10);
+    assert!(mp4.durations.iter().all(|&d| d * 8 == mp4.timescale));
+    assert_eq!(mp4.sync.first(), Some(&1));
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    assert_eq!(
+        config["config"]["video"],
+        serde_json::json!(["mp4", "apng"])
+    );
+    assert_eq!(config["config"]["crf"], 30);
+
+    let ffprobe = std::process::Command::new("ffprobe")
+        .args(["-v", "error", "-count_frames", "-select_streams", "v:0"])
+        .args([
+            "-show_entries",
+            "stream=codec_name,pix_fmt,width,height,nb_read_frames",
+        ])
+        .args(["-of", "default=noprint_wrappers=1"])
+        .arg(out.join("morph.mp4"))
+        .output();
+    match ffprobe {
+        Ok(probe) if probe.status.success() => {
+            let text = String::from_utf8_lossy(&probe.stdout);
+            for line in [
+                "codec_name=h264",
+                "pix_fmt=yuv420p",
+                "width=32",
+                "height=32",
+                "nb_read_frames=10",
+            ] {
+                assert!(text.lines().any(|l| l == line), "ffprobe: {text}");
+            }
+        }
+        other => {
+            assert!(
+                std::env::var_os("DEEPMORPH_REQUIRE_FFPROBE").is_none(),
+                "ffprobe is required here: {other:?}"
+            );
+            eprintln!("ffprobe not available ({other:?}): checked by deepmorph's own reader only");
+        }
+    }
+
+    for (flags, word) in [
+        (["--fps", "0"], "fps"),
+        (["--crf", "52"], "crf"),
+        (["--video", "avi"], "avi"),
+    ] {
+        let err = fails(
+            deepmorph()
+                .args(["demo", "--size", "32", "-q"])
+                .args(flags)
+                .arg("-o")
+                .arg(dir.join("refused"))
+                .args(TINY),
+        );
+        assert!(err.contains(word), "{err}");
+        assert!(!dir.join("refused").exists());
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `--quality` sets its preset's levels, sweeps and tolerance; flags beside it win.
+#[test]
+fn quality_presets_and_the_flags_that_override_them() {
+    let dir = scratch("quality");
+    let out = dir.join("out");
+    let run = deepmorph()
+        .args([
+            "demo",
+            "--size",
+            "32",
+            "--quality",
+            "draft",
+            "--video",
+            "gif",
+        ])
+        .args(["-K", "2", "--sweeps", "2", "--backend", "flex", "-o"])
+        .arg(&out)
+        .assert()
+        .success();
+    // The time estimate comes before the run, as an upper bound (draft has a tolerance).
+    let stderr = String::from_utf8_lossy(&run.get_output().stderr).to_string();
+    assert!(
+        stderr.contains("estimated time: at most") && stderr.contains("all 2 sweeps"),
+        "{stderr}"
+    );
+    let config: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+    let solver = &config["config"]["solver"];
+    assert_eq!(
+        (solver["levels"].as_u64(), solver["sweeps"].as_u64()),
+        (Some(3), Some(2))
+    );
+    assert_eq!(solver["tolerance"].as_f64(), Some(1e-3));
+    assert_eq!(config["working_size"], serde_json::json!([32, 32]));
+    assert!(out.join("morph.gif").is_file() && !out.join("morph.mp4").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -310,3 +310,34 @@ mod long_runs {
         schedules_reach_the_same_minimiser
     );
 }
+
+/// The time estimate: one joint sweep per level predicted as a fixed part plus a rate times
+/// the level's work `K·C·H·W`, fitted to sweeps timed on the coarsest level and the first of
+/// at least 64² (here the finest); the total is `J` of them per level. (What the timings
+/// are is the benchmarks' business; this checks the model's shape and bookkeeping.)
+#[test]
+fn time_estimate_is_linear_in_the_work_of_each_level() {
+    use deepmorph::model::feature_model::FeatureModel;
+    use deepmorph::solver::observer::Phase;
+    let device = device(Backend::Flex, Precision::F32, true);
+    let grid = Grid::new(64, 64, &device, Precision::F32.dtype()).unwrap();
+    let (a, b) = (blob(&grid, 28.0, 28.0, 5.0), blob(&grid, 34.0, 36.0, 5.0));
+    let driver = Multilevel::new(small(3, 3, 7)).unwrap();
+    let estimate = driver
+        .estimate_time(&device, &a, &b, &FeatureModel::Rgb)
+        .unwrap();
+    let j = &estimate.joint;
+    assert_eq!(j.len(), 3);
+    assert!(j.iter().all(|t| t.is_finite() && *t > 0.0), "{j:?}");
+    // Pixels 16², 32², 64²: the increments of a linear model are in the ratio 4.
+    let (first, second) = (j[1] - j[0], j[2] - j[1]);
+    assert!(
+        (second - 4.0 * first).abs() <= 1e-9 * second.abs(),
+        "{j:?} is not fixed + rate·work"
+    );
+    assert_eq!(estimate.features_only, vec![0.0; 3]);
+    let total: f64 = j.iter().map(|t| 7.0 * t).sum();
+    assert!((estimate.total() - total).abs() <= 1e-12 * total);
+    assert_eq!(estimate.remaining_after(2, Phase::Joint, 7), 0.0);
+    assert!(estimate.early_stops && estimate.calibration_seconds > 0.0);
+}

@@ -7,8 +7,11 @@ use std::path::PathBuf;
 
 use anyhow::{Result, bail};
 use clap::{Args, Parser, Subcommand};
-use deepmorph::app::config::{DeepModel, Inputs, Model, MorphConfig, RunRecord, WorkingSize};
+use deepmorph::app::config::{
+    DeepModel, Inputs, Model, MorphConfig, Quality, RunRecord, WorkingSize,
+};
 use deepmorph::eval::synthetic::Field;
+use deepmorph::io::animation::{DEFAULT_QUALITY, VideoFormat};
 use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::{Backend, EnergyParams};
 
@@ -50,6 +53,11 @@ pub struct RunArgs {
     /// run's config.json; the flags given override them.
     #[arg(long, value_name = "FILE")]
     pub config: Option<PathBuf>,
+    /// Preset of working size, levels, sweeps, feature-only sweeps and tolerance: draft (at
+    /// most 128 px, 3 levels x 60 sweeps), standard (the defaults), paper (SPEC §9 at 512 px,
+    /// every sweep run). Flags given beside it override its values.
+    #[arg(long, value_enum)]
+    quality: Option<Quality>,
     #[arg(short = 'K', long = "steps", help = per_command("Number of steps K (K+1 frames)", rgb().solver.steps, MorphConfig::demo().solver.steps))]
     steps: Option<usize>,
     #[arg(long, help = per_command("Pyramid levels", rgb().solver.levels, MorphConfig::demo().solver.levels))]
@@ -97,10 +105,17 @@ pub struct RunArgs {
     max_memory: Option<f64>,
     #[arg(long, value_enum, help = default("Compute backend, as compiled in", rgb().backend))]
     backend: Option<Backend>,
-    /// The GIF plays forward and back.
+    /// The animations play forward and back.
     #[arg(long)]
     pingpong: bool,
-    /// Frames of the animations (morph.gif, morph.apng): N >= K + 1 frames evenly along the
+    #[arg(long, value_enum, value_delimiter = ',', value_name = "FORMATS", help = default("Animations to write, comma-separated: mp4 (H.264), apng (lossless), gif", VideoFormat::defaults().iter().map(|f| f.to_string()).collect::<Vec<_>>().join(",")))]
+    video: Option<Vec<VideoFormat>>,
+    /// Frames per second of the animations [default: as many as make the animation last 3 s].
+    #[arg(long, value_name = "F")]
+    fps: Option<f64>,
+    #[arg(long, value_name = "Q", help = default("Quality of morph.mp4: H.264's quantiser, 0 (best) to 51 (smallest); 18 looks lossless", DEFAULT_QUALITY))]
+    crf: Option<u8>,
+    /// Frames of the animations (morph.mp4, morph.apng, morph.gif): N >= K + 1 frames evenly along the
     /// path, with frames rendered between the computed ones [default: K + 1].
     #[arg(long, value_name = "N")]
     frames: Option<usize>,
@@ -156,6 +171,9 @@ impl RunArgs {
             }
             (Model::Rgb, None) => {}
         }
+        if let Some(quality) = self.quality {
+            quality.apply(&mut config);
+        }
         let solver = &mut config.solver;
         let set = |target: &mut usize, value: Option<usize>| {
             if let Some(v) = value {
@@ -201,6 +219,14 @@ impl RunArgs {
         }
         config.backend = self.backend.unwrap_or(config.backend);
         config.pingpong |= self.pingpong;
+        if let Some(formats) = &self.video {
+            let mut formats = formats.clone();
+            formats.sort();
+            formats.dedup();
+            config.video = formats;
+        }
+        config.fps = self.fps.or(config.fps);
+        config.crf = self.crf.unwrap_or(config.crf);
         config.animation_frames = self.frames.or(config.animation_frames);
         Ok((config, inputs))
     }

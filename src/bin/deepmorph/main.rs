@@ -114,7 +114,7 @@ fn run(cli: Cli) -> Result<i32> {
 }
 
 fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
-    let mut job = MorphJob::prepare(config, inputs)?;
+    let mut job = MorphJob::prepare(config, inputs)?.estimate_time(!args.quiet);
     if let Some((level, sweep)) = injected_fault()? {
         job = job.inject_nonfinite(level, sweep);
     }
@@ -182,9 +182,15 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     if !args.quiet {
         let last = result.energy.records.last().map_or(f64::NAN, |r| r.energy);
         eprintln!(
-            "{termination} in {:.1} s, final E = {last:.6e}; wrote {} frames, morph.gif, morph.apng, sheet.png, deformations, composed map, energy.csv, config.json, metrics.json to {}",
+            "{termination} in {:.1} s, final E = {last:.6e}; wrote {} frames, {}, sheet.png, deformations, composed map, energy.csv, config.json, metrics.json to {}",
             result.seconds,
             config.solver.steps + 1,
+            config
+                .video
+                .iter()
+                .map(|f| f.file_name())
+                .collect::<Vec<_>>()
+                .join(", "),
             out.display()
         );
         if args.verbose {

@@ -2,6 +2,7 @@
 
 use std::io::IsTerminal;
 
+use deepmorph::solver::estimate::TimeEstimate;
 use deepmorph::solver::observer::{Observer, Phase, SweepEvent};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
@@ -16,11 +17,22 @@ pub enum Verbosity {
     Verbose,
 }
 
-/// The command line's progress report: a bar per level (sweep, energy, speed) or a line per
-/// sweep.
+/// The command line's progress report: a bar per level (sweep, energy, speed, the whole
+/// morph's time left) or a line per sweep.
 pub struct Progress {
     verbosity: Verbosity,
     bar: Option<ProgressBar>,
+    estimate: Option<TimeEstimate>,
+}
+
+/// `seconds` for people: `12.3 s`, `4 min 05 s`, `2 h 07 min`.
+pub fn duration(seconds: f64) -> String {
+    let s = seconds.max(0.0).round() as u64;
+    match s {
+        _ if seconds < 60.0 => format!("{seconds:.1} s"),
+        0..3600 => format!("{} min {:02} s", s / 60, s % 60),
+        _ => format!("{} h {:02} min", s / 3600, (s % 3600) / 60),
+    }
 }
 
 impl Progress {
@@ -29,7 +41,24 @@ impl Progress {
         Self {
             verbosity,
             bar: None,
+            estimate: None,
         }
+    }
+
+    /// The whole morph's time left after the sweep of `e`: the estimate's remaining sweeps,
+    /// scaled by how the run's time so far compares with the estimate's for the same sweeps
+    /// (levels the tolerance stopped early count as done, which shortens it). An upper
+    /// bound when the tolerance may stop levels early.
+    fn time_left(&self, e: &SweepEvent<'_>) -> Option<f64> {
+        let estimate = self.estimate.as_ref()?;
+        let remaining = estimate.remaining_after(e.level, e.phase, e.sweep);
+        let predicted_so_far = estimate.total() - remaining;
+        let scale = if predicted_so_far > 1.0 && e.seconds > 1.0 {
+            e.seconds / predicted_so_far
+        } else {
+            1.0
+        };
+        Some(remaining * scale)
     }
 
     fn new_bar(&self, e: &SweepEvent<'_>) -> ProgressBar {
@@ -39,7 +68,7 @@ impl Progress {
         }
         bar.set_style(
             ProgressStyle::with_template(
-                "{prefix} [{bar:30}] {pos}/{len} sweeps  {msg}  {per_sec} eta {eta}",
+                "{prefix} [{bar:30}] {pos}/{len} sweeps  {per_sec}  {msg}",
             )
             .expect("valid template")
             .progress_chars("=> "),
@@ -61,6 +90,26 @@ impl Progress {
 }
 
 impl Observer for Progress {
+    fn estimate(&mut self, estimate: &TimeEstimate) {
+        if self.verbosity != Verbosity::Quiet {
+            let total = duration(estimate.total());
+            let timed = format!(
+                "sweeps timed on this machine in {:.1} s",
+                estimate.calibration_seconds
+            );
+            if estimate.early_stops {
+                eprintln!(
+                    "estimated time: at most {total}, if every level runs all {} sweeps (the \
+                     tolerance usually stops them sooner; {timed})",
+                    estimate.sweeps
+                );
+            } else {
+                eprintln!("estimated time: about {total} ({timed})");
+            }
+        }
+        self.estimate = Some(estimate.clone());
+    }
+
     fn sweep(&mut self, e: &SweepEvent<'_>) {
         if self.verbosity == Verbosity::Quiet {
             return;
@@ -73,7 +122,10 @@ impl Observer for Progress {
         }
         if let Some(bar) = &self.bar {
             bar.set_position(e.sweep as u64);
-            bar.set_message(format!("E {:.5e}", e.energy));
+            let left = self
+                .time_left(e)
+                .map_or(String::new(), |t| format!("  morph: {} left", duration(t)));
+            bar.set_message(format!("E {:.5e}{left}", e.energy));
             if e.sweep == e.sweeps && e.level + 1 == e.levels && e.phase == Phase::Joint {
                 bar.finish();
             }
@@ -112,8 +164,11 @@ impl Observer for Progress {
                             p as f64 / (1u64 << 20) as f64
                         )
                     });
+                let left = self
+                    .time_left(e)
+                    .map_or(String::new(), |t| format!("; at most {} left", duration(t)));
                 eprintln!(
-                    "level {} done after {} sweeps ({}) at {:.1} s{peak}",
+                    "level {} done after {} sweeps ({}) at {:.1} s{peak}{left}",
                     e.level,
                     e.sweep,
                     stop.name(),

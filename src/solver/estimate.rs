@@ -1,0 +1,194 @@
+//! How long a morph will take, measured before it starts: a few sweeps on two levels of the
+//! real problem, timed on the backend that will run it, and a cost model fitted to them.
+//!
+//! A sweep's time is a fixed part (launching ops, the autodiff graph, small allocations:
+//! what dominates at 16²–32²) plus a part proportional to its work `K · C · H · W` (the
+//! warps, convolutions and elementwise passes, all linear in it). Timing the coarsest level
+//! alone would read mostly the fixed part and, scaled by pixels to the finest level,
+//! overestimate a 256² morph about twice; so the calibration times the coarsest level and
+//! the first level of at least [`CALIBRATION_PIXELS`], and fits both parts. The deep
+//! model's feature-only sweeps are timed on the second level too, as a fraction of a joint
+//! sweep.
+//!
+//! The estimate assumes every level runs all its `J` sweeps: with a tolerance, levels
+//! usually stop sooner, so it is an upper bound; the progress report rescales the remaining
+//! time by how fast the run actually goes.
+
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor};
+
+use crate::error::Result;
+use crate::model::feature_model::FeatureModel;
+use crate::model::grid::{Grid, to_host};
+use crate::solver::ipalm::{Ipalm, LevelState, SweepKind};
+use crate::solver::multilevel::{Multilevel, level_endpoints};
+use crate::solver::observer::Phase;
+
+/// The second calibration level is the first with at least this many pixels (64²), where a
+/// sweep's time is mostly work, not overhead (or the finest, if smaller).
+pub const CALIBRATION_PIXELS: usize = 64 * 64;
+
+/// A morph's predicted time, level by level.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TimeEstimate {
+    /// Predicted seconds of one joint sweep on each level, coarse to fine.
+    pub joint: Vec<f64>,
+    /// Predicted seconds of one feature-only sweep on each level (deep model; 0 for RGB).
+    pub features_only: Vec<f64>,
+    /// `J`.
+    pub sweeps: usize,
+    /// Feature-only sweeps before the joint ones on every level after the first.
+    pub pre_sweeps: usize,
+    /// Whether a tolerance may stop levels before their `J` sweeps (the estimate is then an
+    /// upper bound).
+    pub early_stops: bool,
+    /// What the calibration itself took, seconds.
+    pub calibration_seconds: f64,
+}
+
+impl TimeEstimate {
+    /// Seconds of the sweeps still to run after sweep `sweep` of `phase` on `level` (0:
+    /// none of that phase done yet), every level running all its sweeps.
+    pub fn remaining_after(&self, level: usize, phase: Phase, sweep: usize) -> f64 {
+        let mut total = 0.0;
+        for l in level..self.joint.len() {
+            let pre = if l == 0 { 0 } else { self.pre_sweeps };
+            let (pre_done, joint_done) = match (l == level, phase) {
+                (false, _) => (0, 0),
+                (true, Phase::Features) => (sweep.min(pre), 0),
+                (true, Phase::Joint) => (pre, sweep.min(self.sweeps)),
+            };
+            total += (pre - pre_done) as f64 * self.features_only[l]
+                + (self.sweeps - joint_done) as f64 * self.joint[l];
+        }
+        total
+    }
+
+    /// Seconds of the whole morph, every level running all its sweeps.
+    pub fn total(&self) -> f64 {
+        self.remaining_after(0, Phase::Features, 0)
+    }
+}
+
+/// Seconds of `sweeps` sweeps of `kind` (each followed by the energy evaluation the driver
+/// runs after every sweep), after one untimed sweep that warms the allocator and caches.
+fn time_sweeps(
+    ipalm: &Ipalm,
+    state: &mut LevelState,
+    kind: SweepKind,
+    sweeps: usize,
+) -> Result<f64> {
+    let sweep = |state: &mut LevelState| -> Result<()> {
+        ipalm.sweep(state, kind)?;
+        // Reading the energy back synchronises the backend, as the driver does.
+        to_host(ipalm.energy(state).total);
+        Ok(())
+    };
+    sweep(state)?;
+    let started = Instant::now();
+    for _ in 0..sweeps {
+        sweep(state)?;
+    }
+    Ok(started.elapsed().as_secs_f64() / sweeps as f64)
+}
+
+impl Multilevel {
+    /// Times sweeps on two levels of this morph (see the module's documentation) and
+    /// predicts each level's sweep time: a fraction of a second to a few seconds, on the
+    /// device that will run the morph.
+    ///
+    /// # Errors
+    ///
+    /// As [`Multilevel::run_with`].
+    pub fn estimate_time(
+        &self,
+        device: &Device,
+        u_a: &Tensor<4>,
+        u_b: &Tensor<4>,
+        model: &FeatureModel,
+    ) -> Result<TimeEstimate> {
+        let started = Instant::now();
+        let cfg = self.config();
+        let [_, _, h, w] = u_a.dims();
+        let sizes = cfg.level_sizes(h, w)?;
+        let full = Grid::new(h, w, device, u_a.dtype())?;
+        let k = cfg.steps;
+        let second = sizes
+            .iter()
+            .position(|&(lh, lw)| lh * lw >= CALIBRATION_PIXELS)
+            .unwrap_or(sizes.len() - 1);
+        // Work of a sweep on each level: K · C · H · W.
+        let mut work = Vec::with_capacity(sizes.len());
+        for (level, &(lh, lw)) in sizes.iter().enumerate() {
+            let channels = model.layout(sizes.len() - 1 - level)?.channels();
+            work.push((k * channels * lh * lw) as f64);
+        }
+        let mut timed = Vec::new();
+        let mut features_ratio = 0.0;
+        for level in if second == 0 {
+            vec![0]
+        } else {
+            vec![0, second]
+        } {
+            let (lh, lw) = sizes[level];
+            let grid = Grid::new(lh, lw, device, u_a.dtype())?;
+            let downsampling = sizes.len() - 1 - level;
+            let (layout, f_a, f_b) = level_endpoints(model, &full, &grid, u_a, u_b, downsampling)?;
+            let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
+            let mut state = LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?;
+            let joint = time_sweeps(&ipalm, &mut state, SweepKind::Joint, 1)?;
+            if level == second && model.pre_sweeps() > 0 {
+                features_ratio =
+                    time_sweeps(&ipalm, &mut state, SweepKind::FeaturesOnly, 1)? / joint;
+            }
+            timed.push((work[level], joint));
+        }
+        // seconds = fixed + rate · work, through both points (one point: no fixed part).
+        let (fixed, rate) = match timed[..] {
+            [(w1, t1), (w2, t2)] if w2 > w1 => {
+                let rate = ((t2 - t1) / (w2 - w1)).max(0.0);
+                ((t1 - rate * w1).max(0.0), rate)
+            }
+            [(w1, t1), ..] => (0.0, t1 / w1),
+            [] => unreachable!("at least one level is timed"),
+        };
+        let joint: Vec<f64> = work.iter().map(|&wk| fixed + rate * wk).collect();
+        Ok(TimeEstimate {
+            features_only: joint.iter().map(|t| t * features_ratio).collect(),
+            joint,
+            sweeps: cfg.sweeps,
+            pre_sweeps: model.pre_sweeps(),
+            early_stops: cfg.tolerance > 0.0,
+            calibration_seconds: started.elapsed().as_secs_f64(),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn estimate() -> TimeEstimate {
+        TimeEstimate {
+            joint: vec![1.0, 2.0, 4.0],
+            features_only: vec![0.5, 1.0, 2.0],
+            sweeps: 10,
+            pre_sweeps: 3,
+            early_stops: true,
+            calibration_seconds: 0.0,
+        }
+    }
+
+    #[test]
+    fn remaining_time_counts_down_to_zero() {
+        let e = estimate();
+        // Level 0 runs no feature-only sweeps; the others 3 each before their 10.
+        let total = 10.0 * 1.0 + (3.0 * 1.0 + 10.0 * 2.0) + (3.0 * 2.0 + 10.0 * 4.0);
+        assert_eq!(e.total(), total);
+        assert_eq!(e.remaining_after(0, Phase::Joint, 4), total - 4.0);
+        assert_eq!(e.remaining_after(1, Phase::Features, 2), 1.0 + 20.0 + 46.0);
+        assert_eq!(e.remaining_after(1, Phase::Joint, 0), 20.0 + 46.0);
+        assert_eq!(e.remaining_after(2, Phase::Joint, 10), 0.0);
+    }
+}
