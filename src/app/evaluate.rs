@@ -9,6 +9,8 @@ use crate::app::config::{Inputs, RunRecord};
 use crate::error::{Error, Result};
 use crate::eval::folder::MorphFolder;
 use crate::eval::metrics::Metrics;
+use crate::eval::perceptual::feature_path;
+use crate::features::vgg::Vgg19;
 use crate::io::outputs::CONFIG;
 use crate::io::truth::Correspondence;
 
@@ -25,18 +27,20 @@ pub struct Evaluation {
 const ASPECT_TOLERANCE: f64 = 0.05;
 
 /// Reads the morph in `dir`, checks that its `config.json` describes the files beside it,
-/// and measures it; with `truth`, also its endpoint error against that file. A truth must be
+/// and measures it; with `truth`, also its endpoint error against that file; with `vgg19`
+/// (weights as for the deep model), also its path in VGG19 feature space. A truth must be
 /// at the size of the morph's first input (or, where that input cannot be read, of the same
 /// aspect as the working size); another size is refused unless `resample_truth`.
 ///
 /// # Errors
 ///
 /// A missing or malformed file, a record that disagrees with the files, a truth of another
-/// size.
+/// size, unreadable weights.
 pub fn evaluate(
     dir: &Path,
     truth: Option<&Path>,
     resample_truth: bool,
+    vgg19: Option<&Path>,
     device: &Device,
 ) -> Result<Evaluation> {
     let folder = MorphFolder::read(dir, device)?;
@@ -66,10 +70,14 @@ pub fn evaluate(
         })
         .transpose()?;
     let composed = folder.composed();
-    let metrics = folder.metrics(
+    let mut metrics = folder.metrics(
         composed.clone(),
         truth.as_ref().map(|(t, name)| (t, name.as_str())),
     )?;
+    if let Some(weights) = vgg19 {
+        let vgg = Vgg19::load(weights, device)?;
+        metrics.feature_path = Some(feature_path(&vgg, &folder.grid, &folder.frames)?);
+    }
     Ok(Evaluation { metrics, composed })
 }
 

@@ -17,6 +17,7 @@ use crate::backend::Precision;
 use crate::error::Result;
 use crate::eval::folder::MorphFolder;
 use crate::eval::metrics::Metrics;
+use crate::eval::perceptual::feature_path;
 use crate::features::deep::deep_features;
 use crate::features::vgg::Vgg19;
 use crate::features::vgg::architecture::tap_channels;
@@ -325,10 +326,18 @@ impl MorphResult {
         write_atomically(&dir.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
         let json = serde_json::to_vec_pretty(&self.record(job)).expect("records serialise");
         write_atomically(&dir.join(CONFIG), |w| w.write_all(&json))?;
-        let folder = MorphFolder::read(dir, &job.config.backend.device_for(Precision::F32)?)?;
+        let device = job.config.backend.device_for(Precision::F32)?;
+        let folder = MorphFolder::read(dir, &device)?;
         let composed = folder.composed();
         save_composed(dir, composed.clone())?;
-        let metrics = folder.metrics(composed, None)?;
+        let mut metrics = folder.metrics(composed, None)?;
+        // The deep model's network again (it is not kept through the solve, for memory);
+        // should its file have gone meanwhile, the morph is still written, without these.
+        if let Some(deep) = &job.config.deep {
+            metrics.feature_path = Vgg19::load(&deep.vgg19, &device)
+                .and_then(|vgg| feature_path(&vgg, &folder.grid, &folder.frames))
+                .ok();
+        }
         write_metrics(dir, &metrics)?;
         Ok(metrics)
     }

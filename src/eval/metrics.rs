@@ -215,18 +215,29 @@ impl PathStats {
     /// If there are fewer than 2 frames or their lengths differ.
     pub fn of(frames: &[&[f32]]) -> Self {
         assert!(frames.len() >= 2, "a path needs 2 frames or more");
-        let adjacent: Vec<f64> = frames
-            .windows(2)
-            .map(|pair| {
-                assert_eq!(pair[0].len(), pair[1].len(), "frames of different sizes");
-                let sum: f64 = pair[0]
-                    .iter()
-                    .zip(pair[1])
-                    .map(|(&a, &b)| (f64::from(b) - f64::from(a)).powi(2))
-                    .sum();
-                (sum / pair[0].len() as f64).sqrt()
-            })
-            .collect();
+        Self::from_adjacent(
+            frames
+                .windows(2)
+                .map(|pair| {
+                    assert_eq!(pair[0].len(), pair[1].len(), "frames of different sizes");
+                    let sum: f64 = pair[0]
+                        .iter()
+                        .zip(pair[1])
+                        .map(|(&a, &b)| (f64::from(b) - f64::from(a)).powi(2))
+                        .sum();
+                    (sum / pair[0].len() as f64).sqrt()
+                })
+                .collect(),
+        )
+    }
+
+    /// The statistics of the distances `adjacent` of a path's steps (at least one).
+    ///
+    /// # Panics
+    ///
+    /// If `adjacent` is empty.
+    pub fn from_adjacent(adjacent: Vec<f64>) -> Self {
+        assert!(!adjacent.is_empty(), "a path needs 1 step or more");
         let n = adjacent.len() as f64;
         let length: f64 = adjacent.iter().sum();
         let mean = length / n;
@@ -304,6 +315,10 @@ pub struct Metrics {
     pub warp_consistency: WarpConsistency,
     /// The frames' path against the cross-fade.
     pub path: PathSmoothness,
+    /// The same in VGG19 feature space ([`crate::eval::perceptual`]): deep morphs, and
+    /// `deepmorph eval --vgg19`.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub feature_path: Option<PathSmoothness>,
     /// Endpoint error of `Φ` against a ground truth, in working-size pixels.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub endpoint_error: Option<EndpointError>,
@@ -352,6 +367,7 @@ impl Metrics {
             levels: level_energies(records),
             warp_consistency: WarpConsistency::of(grid, u_first, u_last, composed)?,
             path: PathSmoothness::of(frames),
+            feature_path: None,
             endpoint_error,
             truth: truth.map(|(_, name)| name.to_string()),
         })
@@ -418,6 +434,15 @@ impl std::fmt::Display for Metrics {
              relative std {:.3} (cross-fade: length {:.4}, relative std {:.3})",
             m.length, m.variance, m.relative_std, c.length, c.relative_std
         )?;
+        if let Some(p) = &self.feature_path {
+            let (m, c) = (&p.morph, &p.crossfade);
+            writeln!(
+                f,
+                "path in VGG19 feature space: length {:.4}, variance {:.3e}, relative std \
+                 {:.3} (cross-fade: length {:.4}, relative std {:.3})",
+                m.length, m.variance, m.relative_std, c.length, c.relative_std
+            )?;
+        }
         if let Some(e) = &self.endpoint_error {
             writeln!(
                 f,

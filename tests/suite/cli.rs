@@ -671,6 +671,31 @@ fn deep_morph_with_the_stand_in_weights() {
     let log =
         EnergyLog::from_csv(&std::fs::read_to_string(out.join("energy.csv")).unwrap()).unwrap();
     assert_eq!(log.records.len(), 2 * 4);
+    // The path in VGG19 feature space, measured at the end of a deep morph, and by eval.
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
+    let adjacent = metrics["feature_path"]["morph"]["adjacent"]
+        .as_array()
+        .unwrap();
+    assert_eq!(adjacent.len(), 3);
+    assert!(adjacent.iter().all(|d| d.as_f64().unwrap() > 0.0));
+    let eval = deepmorph()
+        .args([
+            "eval",
+            out.to_str().unwrap(),
+            "--backend",
+            "flex",
+            "--vgg19",
+        ])
+        .arg(&vgg19)
+        .assert()
+        .success();
+    let printed = String::from_utf8_lossy(&eval.get_output().stdout).to_string();
+    let length = metrics["feature_path"]["morph"]["length"].as_f64().unwrap();
+    assert!(
+        printed.contains(&format!("path in VGG19 feature space: length {length:.4}")),
+        "{printed}"
+    );
     std::fs::remove_dir_all(dir).ok();
 }
 

@@ -192,3 +192,83 @@ fn equal_images_give_zero_energy_and_a_constant_deep_path() {
         assert!(values((phi - morph.grid.identity(1)).abs().max())[0] < 1e-5);
     }
 }
+
+/// The feature-space path distance (`deepmorph::eval::perceptual`): zero between equal
+/// frames; the module's formula, recomputed here from the network's taps; and a morph
+/// that is itself the 8-bit cross-fade measures exactly as its cross-fade baseline.
+#[test]
+fn feature_space_path_distances() {
+    use deepmorph::Grid;
+    use deepmorph::eval::perceptual::feature_path;
+    use deepmorph::io::images::RgbImage;
+    // flex: its convolutions are the fastest of the CPU backends (some 30 network passes).
+    let device = device(deepmorph::Backend::Flex, Precision::F32, false);
+    let vgg = random_vgg(&device);
+    let (h, w) = (16, 32);
+    let grid = Grid::new(h, w, &device, DType::F32).unwrap();
+    let host = |t: Tensor<4>| RgbImage::from_tensor(t).unwrap();
+    let shifted: Vec<RgbImage> = [0.0, 3.0, 5.0]
+        .iter()
+        .map(|&s| host(image(h, w, s, &device)))
+        .collect();
+    let path = feature_path(&vgg, &grid, &shifted).unwrap();
+
+    // The formula: RMS per tap from both endpoints, mean squared difference over each tap
+    // relative to it, averaged over the taps.
+    let taps: Vec<Vec<Vec<f64>>> = shifted
+        .iter()
+        .map(|f| {
+            vgg.taps(f.to_tensor(&grid).unwrap())
+                .into_iter()
+                .map(values)
+                .collect()
+        })
+        .collect();
+    let rms: Vec<f64> = (0..5)
+        .map(|s| {
+            let (a, b) = (&taps[0][s], &taps[2][s]);
+            let sum: f64 = a.iter().chain(b).map(|v| v * v).sum();
+            (sum / (a.len() + b.len()) as f64).sqrt()
+        })
+        .collect();
+    for k in 1..3 {
+        let mean_sq: f64 = (0..5)
+            .map(|s| {
+                let (u, v) = (&taps[k][s], &taps[k - 1][s]);
+                let sq: f64 = u.iter().zip(v).map(|(x, y)| (x - y).powi(2)).sum();
+                sq / u.len() as f64 / (rms[s] * rms[s])
+            })
+            .sum::<f64>()
+            / 5.0;
+        let (got, want) = (path.morph.adjacent[k - 1], mean_sq.sqrt());
+        assert!(
+            (got - want).abs() <= 1e-4 * want,
+            "step {k}: {got} vs {want}"
+        );
+    }
+    assert!(path.morph.adjacent.iter().all(|d| *d > 0.0));
+
+    let still = feature_path(&vgg, &grid, &[shifted[0].clone(), shifted[0].clone()]).unwrap();
+    assert_eq!(still.morph.adjacent, vec![0.0]);
+
+    // A "morph" that is the 8-bit cross-fade of its ends measures as the baseline.
+    let byte = |v: &f32| (v * 255.0).round() / 255.0;
+    let a: Vec<f32> = shifted[0].data().iter().map(byte).collect();
+    let b: Vec<f32> = shifted[2].data().iter().map(byte).collect();
+    let fade: Vec<RgbImage> = (0..=2)
+        .map(|k| {
+            let t = k as f32 / 2.0;
+            let data = a
+                .iter()
+                .zip(&b)
+                .map(|(&x, &y)| {
+                    ((((1.0 - t) * x + t * y) * 255.0).round().clamp(0.0, 255.0)) / 255.0
+                })
+                .collect();
+            RgbImage::new(h, w, data).unwrap()
+        })
+        .collect();
+    let faded = feature_path(&vgg, &grid, &fade).unwrap();
+    assert_eq!(faded.morph, faded.crossfade);
+    assert!(feature_path(&vgg, &grid, &shifted[..1]).is_err());
+}

@@ -304,6 +304,10 @@ pub(crate) enum Command {
         /// Accept a ground truth of another size than the first input, scaled to the morph.
         #[arg(long)]
         resample_truth: bool,
+        /// VGG19 weights (as for --model deep): also measure the path in VGG19 feature space
+        /// (deep morphs record it in metrics.json themselves).
+        #[arg(long, value_name = "FILE")]
+        vgg19: Option<PathBuf>,
         /// Write metrics.json and the composed map (composed.json, composed.f32) into DIR.
         #[arg(long)]
         write: bool,

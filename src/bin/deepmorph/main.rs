@@ -58,18 +58,27 @@ fn run(cli: Cli) -> Result<i32> {
             dir,
             truth,
             resample_truth,
+            vgg19,
             write,
             backend,
             quiet,
         } => {
-            return eval(
+            let device = backend_or_default(backend).device_for(Precision::F32)?;
+            let evaluation = evaluate(
                 &dir,
                 truth.as_deref(),
                 resample_truth,
-                write,
-                backend,
-                quiet,
-            );
+                vgg19.as_deref(),
+                &device,
+            )?;
+            if !quiet {
+                print!("{}", evaluation.metrics);
+            }
+            if write {
+                save_composed(&dir, evaluation.composed)?;
+                write_metrics(&dir, &evaluation.metrics)?;
+            }
+            return Ok(0);
         }
         Command::Warp {
             image,
@@ -225,28 +234,6 @@ fn is_warp_output(name: &str) -> bool {
 
 fn backend_or_default(backend: Option<Backend>) -> Backend {
     backend.unwrap_or(MorphConfig::default().backend)
-}
-
-/// `deepmorph eval`: reads a morph's folder, checks it, prints its metrics and, with
-/// `write`, writes `metrics.json` and the composed map into it.
-fn eval(
-    dir: &Path,
-    truth: Option<&Path>,
-    resample_truth: bool,
-    write: bool,
-    backend: Option<Backend>,
-    quiet: bool,
-) -> Result<i32> {
-    let device = backend_or_default(backend).device_for(Precision::F32)?;
-    let evaluation = evaluate(dir, truth, resample_truth, &device)?;
-    if !quiet {
-        print!("{}", evaluation.metrics);
-    }
-    if write {
-        save_composed(dir, evaluation.composed)?;
-        write_metrics(dir, &evaluation.metrics)?;
-    }
-    Ok(0)
 }
 
 /// `deepmorph warp`: a synthetic pair with a known correspondence.
