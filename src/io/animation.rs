@@ -65,8 +65,10 @@ pub const DEFAULT_SECONDS: f64 = 3.0;
 /// 50 frames per second GIF players would slow the clip down.
 pub const FPS_RANGE: std::ops::RangeInclusive<f64> = 0.1..=50.0;
 
-/// The MP4's quantiser when none is given: visually lossless on morphs at 256² (PSNR
-/// about 45 dB on `faces`), about 10 kB per frame.
+/// The MP4's quantiser when none is given, the number x264 users know as "visually
+/// lossless". Measured on the `faces` draft morph (128², 16 frames): 2.1 kB per frame, RGB
+/// PSNR 36.8 dB against the PNG frames, most of the loss being 4:2:0's halved chroma
+/// resolution (the APNG is the lossless one).
 pub const DEFAULT_QUALITY: u8 = 18;
 
 /// How the animations are written.

@@ -202,7 +202,7 @@ fn feature_space_path_distances() {
     use deepmorph::eval::perceptual::feature_path;
     use deepmorph::io::images::RgbImage;
     // flex: its convolutions are the fastest of the CPU backends (some 30 network passes).
-    let device = device(deepmorph::Backend::Flex, Precision::F32, false);
+    let device = device(common::fast_cpu_backend(), Precision::F32, false);
     let vgg = random_vgg(&device);
     let (h, w) = (16, 32);
     let grid = Grid::new(h, w, &device, DType::F32).unwrap();

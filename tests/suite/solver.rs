@@ -319,7 +319,7 @@ mod long_runs {
 fn time_estimate_is_linear_in_the_work_of_each_level() {
     use deepmorph::model::feature_model::FeatureModel;
     use deepmorph::solver::observer::Phase;
-    let device = device(Backend::Flex, Precision::F32, true);
+    let device = device(common::fast_cpu_backend(), Precision::F32, true);
     let grid = Grid::new(64, 64, &device, Precision::F32.dtype()).unwrap();
     let (a, b) = (blob(&grid, 28.0, 28.0, 5.0), blob(&grid, 34.0, 36.0, 5.0));
     let driver = Multilevel::new(small(3, 3, 7)).unwrap();

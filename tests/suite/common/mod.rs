@@ -168,6 +168,16 @@ pub fn reference_backend() -> Backend {
     }
 }
 
+/// The faster CPU backend compiled in (flex's convolutions and kernels beat ndarray's), for
+/// tests whose cost is mostly compute.
+pub fn fast_cpu_backend() -> Backend {
+    if cfg!(feature = "flex") {
+        Backend::Flex
+    } else {
+        reference_backend()
+    }
+}
+
 /// A fresh, empty scratch directory for one test (`group` and `name` keep tests apart).
 pub fn scratch(group: &str, name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("deepmorph-{group}-{}-{name}", std::process::id()));
