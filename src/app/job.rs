@@ -291,7 +291,11 @@ impl MorphResult {
 
     /// The animations' frames, 8-bit: the computed frames, or `--frames N` of them with
     /// in-between frames ([`Clip`]).
-    fn animation(&self, job: &MorphJob) -> Result<Vec<Rgb8>> {
+    ///
+    /// # Errors
+    ///
+    /// If the backend fails to render an in-between frame.
+    pub fn animation(&self, job: &MorphJob) -> Result<Vec<Rgb8>> {
         let Some(count) = job.config.animation_frames else {
             return Ok(self.frames.iter().map(RgbImage::to_rgb8).collect());
         };
@@ -312,7 +316,14 @@ impl MorphResult {
             .collect()
     }
 
-    fn write_files(&self, job: &MorphJob, dir: &Path) -> Result<Metrics> {
+    /// Writes every output into the existing folder `dir` (as [`MorphResult::write`] does
+    /// into its staging folder) and returns the metrics: for a morph that is part of a
+    /// larger output, such as a segment of a chain.
+    ///
+    /// # Errors
+    ///
+    /// A file cannot be written.
+    pub fn write_files(&self, job: &MorphJob, dir: &Path) -> Result<Metrics> {
         let k = job.config.solver.steps;
         write_frames(dir, &self.frames)?;
         let animation = self.animation(job)?;

@@ -2,12 +2,14 @@
 //! as a library call. The command line (`src/bin/deepmorph`) only parses arguments, shows
 //! progress, handles Ctrl-C and maps outcomes to exit codes.
 //!
+//! - [`chain`]: morphing through more than two images, one morph per consecutive pair.
 //! - [`config`]: the settings of a whole morph, serialisable; `config.json`'s record.
 //! - [`evaluate`]: a finished morph's folder checked and measured (`deepmorph eval`).
 //! - [`job`]: prepare (check, read, size, memory), run, write the outputs.
 //! - [`memory`]: the peak-memory estimate and the refusal of what would not fit.
 //! - [`demo`]: the built-in synthetic pair.
 
+pub mod chain;
 pub mod config;
 pub mod demo;
 pub mod evaluate;

@@ -32,8 +32,10 @@ const ASIDE_TAG: &str = "old-";
 impl OutputFolder {
     /// Checks `target` and creates the staging folder beside it.
     ///
-    /// `owned` says which file names this program writes into such a folder; `force` allows
-    /// replacing a non-empty folder that holds only such files.
+    /// `owned` says which file names this program writes into such a folder (a file in a
+    /// subfolder as `sub/name`: a subfolder is ours when `owned("sub/")` holds and every file
+    /// in it is owned, one level deep); `force` allows replacing a non-empty folder that
+    /// holds only such files.
     ///
     /// # Errors
     ///
@@ -85,8 +87,16 @@ impl OutputFolder {
             for entry in std::fs::read_dir(&target_path).map_err(io_error(&target_path))? {
                 let entry = entry.map_err(io_error(&target_path))?;
                 let file_name = entry.file_name().to_string_lossy().into_owned();
-                let is_file = entry.file_type().is_ok_and(|t| t.is_file());
-                if !(is_file && owned(&file_name)) {
+                let kind = entry.file_type().ok();
+                let ours = match kind {
+                    Some(t) if t.is_file() => owned(&file_name),
+                    Some(t) if t.is_dir() => {
+                        owned(&format!("{file_name}/"))
+                            && owned_subfolder(&entry.path(), &file_name, &owned)
+                    }
+                    _ => false,
+                };
+                if !ours {
                     foreign.push(file_name);
                 }
                 entries += 1;
@@ -198,6 +208,20 @@ impl Drop for OutputFolder {
             let _ = std::fs::remove_dir_all(&self.staging);
         }
     }
+}
+
+/// Whether every entry of the subfolder `dir` (named `name`) is a file that `owned` accepts
+/// as `name/file`.
+fn owned_subfolder(dir: &Path, name: &str, owned: &impl Fn(&str) -> bool) -> bool {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return false;
+    };
+    entries.into_iter().all(|entry| {
+        entry.is_ok_and(|e| {
+            e.file_type().is_ok_and(|t| t.is_file())
+                && owned(&format!("{name}/{}", e.file_name().to_string_lossy()))
+        })
+    })
 }
 
 /// Removes the staging folders for `name` in `parent` left by processes that no longer run,

@@ -815,3 +815,74 @@ fn quality_presets_and_the_flags_that_override_them() {
     assert!(out.join("morph.gif").is_file() && !out.join("morph.mp4").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `morph A B C`: one morph per consecutive pair in `segment_NN/`, at the first image's
+/// working size, and one animation of the whole chain whose joints are the shared images.
+#[test]
+fn a_chain_of_three_images() {
+    let dir = scratch("chain");
+    let images: Vec<PathBuf> = (0..3).map(|i| dir.join(format!("{i}.png"))).collect();
+    write_image(&images[0], 32, 32, 0.4, 0.35);
+    write_image(&images[1], 48, 48, 0.5, 0.5);
+    write_image(&images[2], 32, 32, 0.6, 0.65);
+    let out = dir.join("out");
+    let run = |force: bool| {
+        let mut cmd = deepmorph();
+        cmd.arg("morph")
+            .args(&images)
+            .args(["--video", "apng", "-q", "-o"])
+            .arg(&out)
+            .args(TINY);
+        if force {
+            cmd.arg("--force");
+        }
+        cmd
+    };
+    run(false).assert().success();
+    for segment in ["segment_01", "segment_02"] {
+        for name in deepmorph::io::outputs::output_names(3) {
+            if !name.starts_with("morph.") || name == "morph.apng" {
+                assert!(out.join(segment).join(&name).is_file(), "{segment}/{name}");
+            }
+        }
+    }
+    let frame = |segment: &str, k: usize| {
+        RgbImage::load(&out.join(segment).join(format!("frame_0{k}.png")))
+            .unwrap()
+            .to_rgb8()
+            .into_raw()
+    };
+    // The joint: segment 1 ends and segment 2 starts on the middle image, at 32x32.
+    assert_eq!(frame("segment_01", 3), frame("segment_02", 0));
+    assert_eq!(frame("segment_01", 3).len(), 3 * 32 * 32);
+    let bytes = std::fs::read(out.join("morph.apng")).unwrap();
+    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
+        .read_info()
+        .unwrap();
+    assert_eq!(reader.info().animation_control.unwrap().num_frames, 7);
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let mut played = Vec::new();
+    for _ in 0..7 {
+        let info = reader.next_frame(&mut buf).unwrap();
+        played.push(buf[..info.buffer_size()].to_vec());
+    }
+    assert_eq!(played[3], frame("segment_01", 3));
+    assert_eq!(played[6], frame("segment_02", 3));
+    assert!(!out.join("morph.gif").exists());
+
+    // A chain's folder is replaced with --force, and never when it holds a foreign file.
+    fails(&mut run(false));
+    run(true).assert().success();
+    std::fs::write(out.join("segment_01").join("notes.txt"), "mine").unwrap();
+    let err = fails(&mut run(true));
+    assert!(err.contains("segment_01"), "{err}");
+    assert!(out.join("segment_01").join("notes.txt").is_file());
+
+    let err = fails(
+        deepmorph()
+            .args(["morph", images[0].to_str().unwrap(), "-o"])
+            .arg(dir.join("one")),
+    );
+    assert!(err.contains("two images"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

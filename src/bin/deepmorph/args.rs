@@ -266,14 +266,14 @@ pub(crate) struct Cli {
 
 #[derive(Subcommand)]
 pub(crate) enum Command {
-    /// Morph image A into image B.
+    /// Morph image A into image B (or through a chain of images).
     Morph {
-        /// The first image (any common format; alpha dropped, grey expanded to RGB); with
-        /// --config and no images, the recorded ones.
-        #[arg(requires = "b")]
-        a: Option<PathBuf>,
-        /// The last image (resized to A's working size if it differs).
-        b: Option<PathBuf>,
+        /// The images: A and B (any common format; alpha dropped, grey expanded to RGB; B
+        /// resized to A's working size if it differs), or more for a chain: each consecutive
+        /// pair is morphed into OUT/segment_01, OUT/segment_02, ..., and OUT/morph.mp4 (.apng,
+        /// .gif) plays the whole chain. With --config and no images: the recorded ones.
+        #[arg(value_name = "IMAGES")]
+        images: Vec<PathBuf>,
         /// Working size WxH (each a multiple of 2^(levels-1), and of 16 for the deep model).
         #[arg(long, value_parser = parse_size, conflicts_with = "max_side")]
         size: Option<(usize, usize)>,

@@ -6,12 +6,13 @@
 mod args;
 mod progress;
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 
 use anyhow::{Context, Result};
 use clap::Parser;
+use deepmorph::app::chain::ChainJob;
 use deepmorph::app::config::{Inputs, MorphConfig};
 use deepmorph::app::evaluate::evaluate;
 use deepmorph::app::job::{MorphJob, write_metrics};
@@ -91,19 +92,24 @@ fn run(cli: Cli) -> Result<i32> {
             return warp(&image, field, amount, &output, force, backend);
         }
         Command::Morph {
-            a,
-            b,
+            mut images,
             size,
             max_side,
             run,
         } => {
             let (mut config, recorded) = run.resolve(MorphConfig::default())?;
             config.size = working_size(size, max_side, config.size);
-            let inputs = match (a, b, recorded) {
-                (Some(a), Some(b), _) => Inputs::Files { a, b },
-                (_, _, Some(recorded)) => recorded,
+            let inputs = match (images.len(), recorded) {
+                (0, Some(recorded)) => recorded,
+                (2, _) => {
+                    let b = images.pop().expect("two images");
+                    let a = images.pop().expect("two images");
+                    Inputs::Files { a, b }
+                }
+                (3.., _) => return chain(config, images, &run),
                 _ => anyhow::bail!(
-                    "morph needs two images A and B (or --config with a run's config.json)"
+                    "morph needs two images A and B, more for a chain, or --config with a \
+                     run's config.json"
                 ),
             };
             (config, inputs, run)
@@ -128,30 +134,8 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
         job = job.inject_nonfinite(level, sweep);
     }
     let folder = job.output_folder(&args.output, args.force)?;
-    let interrupt = Arc::new(AtomicBool::new(false));
-    let flag = Arc::clone(&interrupt);
-    let staging = folder.path().to_path_buf();
-    // SIGINT, SIGTERM and SIGHUP alike (ctrlc's `termination` feature).
-    ctrlc::set_handler(move || {
-        if flag.swap(true, Ordering::SeqCst) {
-            // A second signal aborts, leaving the previous output as it was, unless the
-            // outputs are being written (a second or so): those are finished first, so the
-            // staging folder is never removed under the writer.
-            if let Ok(_not_writing) = WRITING.try_lock() {
-                let _ = std::fs::remove_dir_all(&staging);
-                std::process::exit(EXIT_INTERRUPTED);
-            }
-            eprintln!("\nthe outputs are being written; they will be complete in a moment");
-            return;
-        }
-        eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (signal again to abort)");
-    })
-    .context("installing the signal handler")?;
-    let verbosity = match (args.quiet, args.verbose) {
-        (true, _) => Verbosity::Quiet,
-        (_, true) => Verbosity::Verbose,
-        _ => Verbosity::Normal,
-    };
+    let interrupt = stop_on_signals(folder.path().to_path_buf())?;
+    let verbosity = verbosity(args);
     let config = job.config();
     let (h, w) = job.working_size();
     if !args.quiet {
@@ -208,6 +192,92 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     }
     Ok(match termination {
         Termination::Interrupted { .. } => EXIT_INTERRUPTED,
+        _ => 0,
+    })
+}
+
+/// Turns SIGINT, SIGTERM and SIGHUP (ctrlc's `termination` feature) into a raised flag: the
+/// solver stops after the current sweep and the outputs are written. A second signal aborts,
+/// removing `staging` and leaving the previous output as it was, unless the outputs are being
+/// written (a second or so): those are finished first, so the staging folder is never
+/// removed under the writer.
+fn stop_on_signals(staging: PathBuf) -> Result<Arc<AtomicBool>> {
+    let interrupt = Arc::new(AtomicBool::new(false));
+    let flag = Arc::clone(&interrupt);
+    ctrlc::set_handler(move || {
+        if flag.swap(true, Ordering::SeqCst) {
+            // A second signal aborts, leaving the previous output as it was, unless the
+            // outputs are being written (a second or so): those are finished first, so the
+            // staging folder is never removed under the writer.
+            if let Ok(_not_writing) = WRITING.try_lock() {
+                let _ = std::fs::remove_dir_all(&staging);
+                std::process::exit(EXIT_INTERRUPTED);
+            }
+            eprintln!("\nthe outputs are being written; they will be complete in a moment");
+            return;
+        }
+        eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (signal again to abort)");
+    })
+    .context("installing the signal handler")?;
+    Ok(interrupt)
+}
+
+fn verbosity(args: &RunArgs) -> Verbosity {
+    match (args.quiet, args.verbose) {
+        (true, _) => Verbosity::Quiet,
+        (_, true) => Verbosity::Verbose,
+        _ => Verbosity::Normal,
+    }
+}
+
+/// `deepmorph morph A B C ...`: one morph per consecutive pair, in one output folder.
+fn chain(config: MorphConfig, images: Vec<PathBuf>, args: &RunArgs) -> Result<i32> {
+    let job = ChainJob::prepare(config, images)?.estimate_time(!args.quiet);
+    let folder = job.output_folder(&args.output, args.force)?;
+    let interrupt = stop_on_signals(folder.path().to_path_buf())?;
+    let count = job.segments().len();
+    let mut progress = Progress::new(verbosity(args));
+    let quiet = args.quiet;
+    let outcome = job.run(
+        folder,
+        &mut progress,
+        &interrupt,
+        |i, segment| {
+            if !quiet {
+                segment.notes().iter().for_each(|note| eprintln!("{note}"));
+                let (h, w) = segment.working_size();
+                if let Inputs::Files { a, b } = segment.inputs() {
+                    eprintln!(
+                        "segment {}/{count}: {} -> {}, {w}x{h} (WxH), about {:.1} GiB",
+                        i + 1,
+                        a.display(),
+                        b.display(),
+                        memory::gib(segment.estimated_peak_bytes())
+                    );
+                }
+            }
+        },
+        &WRITING,
+    )?;
+    drop(progress);
+    let last = outcome.segments.last().map(|(t, _)| t.clone());
+    if !quiet {
+        eprintln!(
+            "chain of {count} segments: {} run, {}; wrote them to {}{}",
+            outcome.segments.len(),
+            last.as_ref().map_or("none".into(), ToString::to_string),
+            outcome.folder.display(),
+            if outcome.animation {
+                ", with the whole chain's animations"
+            } else {
+                " (no chain animation: not every segment completed)"
+            }
+        );
+    }
+    Ok(match last {
+        Some(Termination::NonFinite { .. }) => EXIT_NONFINITE,
+        Some(Termination::Interrupted { .. }) => EXIT_INTERRUPTED,
+        _ if outcome.segments.len() < count => EXIT_INTERRUPTED,
         _ => 0,
     })
 }
