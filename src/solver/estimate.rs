@@ -6,13 +6,15 @@
 //! warps, convolutions and elementwise passes, all linear in it). Timing the coarsest level
 //! alone would read mostly the fixed part and, scaled by pixels to the finest level,
 //! overestimate a 256² morph about twice; so the calibration times the coarsest level and
-//! the first level of at least [`CALIBRATION_PIXELS`], and fits both parts. The deep
+//! the first level above it of at least [`CALIBRATION_PIXELS`] (or the finest), and fits
+//! both parts. The deep
 //! model's feature-only sweeps are timed on the second level too, as a fraction of a joint
 //! sweep.
 //!
 //! The estimate assumes every level runs all its `J` sweeps: with a tolerance, levels
-//! usually stop sooner, so it is an upper bound; the progress report rescales the remaining
-//! time by how fast the run actually goes.
+//! usually stop sooner. It is an estimate, not a bound: sweeps from the initial state are
+//! not quite the sweeps of a running level (README, "Benchmarks", compares it with measured
+//! runs); the progress report rescales the remaining time by how fast the run actually goes.
 
 use std::time::Instant;
 
@@ -114,10 +116,15 @@ impl Multilevel {
         let sizes = cfg.level_sizes(h, w)?;
         let full = Grid::new(h, w, device, u_a.dtype())?;
         let k = cfg.steps;
+        // Two points whenever there are two levels: the coarsest, and the first level above
+        // it of at least CALIBRATION_PIXELS (else the finest). One point read as all rate
+        // would scale the coarsest level's fixed part up with the pixels (measured: a 256²
+        // morph whose coarsest level is 64² was estimated 50 % high that way).
         let second = sizes
             .iter()
+            .skip(1)
             .position(|&(lh, lw)| lh * lw >= CALIBRATION_PIXELS)
-            .unwrap_or(sizes.len() - 1);
+            .map_or(sizes.len() - 1, |p| p + 1);
         // Work of a sweep on each level: K · C · H · W.
         let mut work = Vec::with_capacity(sizes.len());
         for (level, &(lh, lw)) in sizes.iter().enumerate() {

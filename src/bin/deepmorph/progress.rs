@@ -47,8 +47,8 @@ impl Progress {
 
     /// The whole morph's time left after the sweep of `e`: the estimate's remaining sweeps,
     /// scaled by how the run's time so far compares with the estimate's for the same sweeps
-    /// (levels the tolerance stopped early count as done, which shortens it). An upper
-    /// bound when the tolerance may stop levels early.
+    /// (levels the tolerance stopped early count as done, which shortens it); with a
+    /// tolerance, levels still to come may stop sooner too.
     fn time_left(&self, e: &SweepEvent<'_>) -> Option<f64> {
         let estimate = self.estimate.as_ref()?;
         let remaining = estimate.remaining_after(e.level, e.phase, e.sweep);
@@ -99,8 +99,8 @@ impl Observer for Progress {
             );
             if estimate.early_stops {
                 eprintln!(
-                    "estimated time: at most {total}, if every level runs all {} sweeps (the \
-                     tolerance usually stops them sooner; {timed})",
+                    "estimated time: about {total} if every level runs all its {} sweeps (the \
+                     tolerance usually stops levels sooner; {timed})",
                     estimate.sweeps
                 );
             } else {
@@ -166,7 +166,7 @@ impl Observer for Progress {
                     });
                 let left = self
                     .time_left(e)
-                    .map_or(String::new(), |t| format!("; at most {} left", duration(t)));
+                    .map_or(String::new(), |t| format!("; about {} left", duration(t)));
                 eprintln!(
                     "level {} done after {} sweeps ({}) at {:.1} s{peak}{left}",
                     e.level,
