@@ -37,6 +37,22 @@ fn write_image(path: &Path, h: usize, w: usize, cy: f64, cx: f64) {
     write_png(path, &RgbImage::new(h, w, data).unwrap().to_rgb8()).unwrap();
 }
 
+/// Every frame of an animated PNG, as 8-bit RGB bytes, in play order.
+fn apng_frames(path: &Path) -> Vec<Vec<u8>> {
+    let bytes = std::fs::read(path).unwrap();
+    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
+        .read_info()
+        .unwrap();
+    let count = reader.info().animation_control.unwrap().num_frames;
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    (0..count)
+        .map(|_| {
+            let info = reader.next_frame(&mut buf).unwrap();
+            buf[..info.buffer_size()].to_vec()
+        })
+        .collect()
+}
+
 const TINY: [&str; 8] = [
     "-K",
     "3",
@@ -96,17 +112,8 @@ fn frames_sets_the_animation_length() {
         .args(TINY)
         .assert()
         .success();
-    let bytes = std::fs::read(out.join("morph.apng")).unwrap();
-    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
-        .read_info()
-        .unwrap();
-    assert_eq!(reader.info().animation_control.unwrap().num_frames, 10);
-    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-    let mut decoded = Vec::new();
-    for _ in 0..10 {
-        let info = reader.next_frame(&mut buf).unwrap();
-        decoded.push(buf[..info.buffer_size()].to_vec());
-    }
+    let decoded = apng_frames(&out.join("morph.apng"));
+    assert_eq!(decoded.len(), 10);
     for (j, k) in [(0, 0), (9, 3)] {
         let frame = RgbImage::load(&out.join(format!("frame_0{k}.png"))).unwrap();
         assert_eq!(
@@ -856,17 +863,8 @@ fn a_chain_of_three_images() {
     // The joint: segment 1 ends and segment 2 starts on the middle image, at 32x32.
     assert_eq!(frame("segment_01", 3), frame("segment_02", 0));
     assert_eq!(frame("segment_01", 3).len(), 3 * 32 * 32);
-    let bytes = std::fs::read(out.join("morph.apng")).unwrap();
-    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes))
-        .read_info()
-        .unwrap();
-    assert_eq!(reader.info().animation_control.unwrap().num_frames, 7);
-    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
-    let mut played = Vec::new();
-    for _ in 0..7 {
-        let info = reader.next_frame(&mut buf).unwrap();
-        played.push(buf[..info.buffer_size()].to_vec());
-    }
+    let played = apng_frames(&out.join("morph.apng"));
+    assert_eq!(played.len(), 7);
     assert_eq!(played[3], frame("segment_01", 3));
     assert_eq!(played[6], frame("segment_02", 3));
     assert!(!out.join("morph.gif").exists());
