@@ -180,6 +180,10 @@ pub struct MorphConfig {
     /// adds frames between them ([`crate::model::inbetween`]).
     #[serde(default)]
     pub animation_frames: Option<usize>,
+    /// A finished morph's folder to start from instead of the coarsest level (`--init`):
+    /// its frames and deformations are prolongated to the first larger level.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init: Option<PathBuf>,
     /// Refuse to start when the estimated peak memory exceeds this many GiB; `None`: the
     /// memory available now (CPU backends), no limit on wgpu.
     pub max_memory_gib: Option<f64>,
@@ -197,6 +201,7 @@ impl Default for MorphConfig {
             fps: None,
             crf: DEFAULT_QUALITY,
             animation_frames: None,
+            init: None,
             max_memory_gib: None,
         }
     }

@@ -14,7 +14,7 @@ use crate::app::config::{Inputs, MorphConfig, Outcome, RunRecord};
 use crate::app::demo::demo_pair;
 use crate::app::memory;
 use crate::backend::Precision;
-use crate::error::Result;
+use crate::error::{Error, Result};
 use crate::eval::folder::MorphFolder;
 use crate::eval::metrics::Metrics;
 use crate::eval::perceptual::feature_path;
@@ -31,7 +31,7 @@ use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
 use crate::model::inbetween::Clip;
 use crate::solver::ipalm::Schedule;
-use crate::solver::multilevel::{Morph, Multilevel};
+use crate::solver::multilevel::{Draft, Morph, Multilevel};
 use crate::solver::observer::{Observer, Termination};
 
 /// A morph ready to run: checked settings, the inputs at the working size.
@@ -128,6 +128,9 @@ impl MorphJob {
                 ((Inputs::Demo), (a.resized(h, w), b.resized(h, w)), estimate)
             }
         };
+        if let Some(dir) = &config.init {
+            check_draft(dir, &config, images.0.height(), images.0.width())?;
+        }
         Ok(Self {
             config,
             inputs,
@@ -220,6 +223,19 @@ impl MorphJob {
             None => FeatureModel::Rgb,
         };
         let mut driver = Multilevel::new(self.config.solver)?;
+        if let Some(dir) = &self.config.init {
+            let folder = MorphFolder::read(dir, &device)?;
+            let frames = folder
+                .frames
+                .iter()
+                .map(|f| f.to_tensor(&folder.grid))
+                .collect::<Result<Vec<_>>>()?;
+            driver = driver.with_draft(Draft {
+                grid: folder.grid,
+                frames,
+                deformations: folder.deformations,
+            })?;
+        }
         if let Some((level, sweep)) = self.inject_nonfinite {
             driver = driver.inject_nonfinite(level, sweep);
         }
@@ -357,6 +373,35 @@ impl MorphResult {
     pub fn completed(&self) -> bool {
         self.morph.termination == Termination::Completed
     }
+}
+
+/// Refuses a draft (`--init`) that cannot start this morph, before any work: not a morph's
+/// folder, another `K`, larger than the working size's limit, or of another aspect ratio.
+fn check_draft(dir: &Path, config: &MorphConfig, height: usize, width: usize) -> Result<()> {
+    let record = RunRecord::read(&dir.join(CONFIG))?;
+    let bad = |detail: String| Error::Format {
+        path: dir.join(CONFIG),
+        detail: format!("cannot start this morph from this draft: {detail}"),
+    };
+    if record.config.solver.steps != config.solver.steps {
+        return Err(bad(format!(
+            "its K is {}, this morph's {} (a refined morph keeps the draft's K)",
+            record.config.solver.steps, config.solver.steps
+        )));
+    }
+    let [h, w] = record.outcome.grid;
+    if h > height || w > width {
+        return Err(bad(format!(
+            "it is {w}x{h}, larger than the working size {width}x{height}"
+        )));
+    }
+    let aspect = |h: usize, w: usize| w as f64 / h as f64;
+    if (aspect(h, w) / aspect(height, width) - 1.0).abs() > 0.05 {
+        return Err(bad(format!(
+            "it is {w}x{h}, another aspect ratio than the working size {width}x{height}"
+        )));
+    }
+    Ok(())
 }
 
 /// Writes `metrics.json` into `dir`.

@@ -181,10 +181,25 @@ pub(crate) fn level_endpoints(
     Ok((layout, f_a, f_b))
 }
 
+/// A finished morph to start from instead of the coarsest level (`--init`): its frames and
+/// deformations are prolongated to the first level larger than it, as a coarser level's
+/// would be (SPEC §7), and the levels up to its size are not run.
+#[derive(Clone, Debug)]
+pub struct Draft {
+    /// The draft's grid (on the device of the run).
+    pub grid: Grid,
+    /// `u_0..u_K`, RGB, each `[1, 3, h, w]`.
+    pub frames: Vec<Tensor<4>>,
+    /// `φ_1..φ_K`, `[K, 2, h, w]`.
+    pub deformations: Tensor<4>,
+}
+
 /// The multilevel driver.
 #[derive(Clone, Debug)]
 pub struct Multilevel {
     config: MultilevelConfig,
+    /// Where to start instead of the coarsest level.
+    draft: Option<Draft>,
     /// A fault to inject for testing the non-finite path (see
     /// [`inject_nonfinite`](Self::inject_nonfinite)).
     inject_nonfinite: Option<(usize, usize)>,
@@ -200,8 +215,31 @@ impl Multilevel {
         config.validate()?;
         Ok(Self {
             config,
+            draft: None,
             inject_nonfinite: None,
         })
+    }
+
+    /// Starts from `draft` instead of the coarsest level: the levels no larger than the
+    /// draft (in pixels) are skipped, except the finest, which always runs.
+    ///
+    /// # Errors
+    ///
+    /// If the draft's `K` is not this morph's.
+    pub fn with_draft(mut self, draft: Draft) -> Result<Self> {
+        let k = draft.deformations.dims()[0];
+        if k != self.config.steps || draft.frames.len() != k + 1 {
+            return Err(Error::invalid(
+                "K",
+                self.config.steps,
+                format!(
+                    "the draft's K = {k} ({} frames): a morph refined from a draft keeps its K",
+                    draft.frames.len()
+                ),
+            ));
+        }
+        self.draft = Some(draft);
+        Ok(self)
     }
 
     /// For tests of what happens when the optimisation meets a NaN: after sweep `sweep` of
@@ -271,8 +309,23 @@ impl Multilevel {
         let k = cfg.steps;
 
         let mut previous: Option<(Grid, LevelState, FeatureLayout)> = None;
+        let mut first = 0;
+        if let Some(draft) = &self.draft {
+            let pixels = draft.grid.height() * draft.grid.width();
+            first = sizes
+                .iter()
+                .position(|&(lh, lw)| lh * lw > pixels)
+                .unwrap_or(sizes.len() - 1);
+            let layout = FeatureLayout::rgb();
+            let (l_phi, l_f) = initial_lipschitz(&draft.grid, &layout, k, cfg.params.delta);
+            let phi = (0..k)
+                .map(|i| draft.deformations.clone().narrow(0, i, 1))
+                .collect();
+            let state = LevelState::new(draft.frames.clone(), phi, l_phi, l_f)?;
+            previous = Some((draft.grid.clone(), state, layout));
+        }
         let mut summaries = Vec::with_capacity(sizes.len());
-        for (level, &(lh, lw)) in sizes.iter().enumerate() {
+        for (level, &(lh, lw)) in sizes.iter().enumerate().skip(first) {
             let downsampling = sizes.len() - 1 - level;
             let grid = Grid::new(lh, lw, device, dtype)?;
             let (layout, f_a, f_b) =

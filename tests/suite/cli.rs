@@ -885,3 +885,55 @@ fn a_chain_of_three_images() {
     assert!(err.contains("two images"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--init DRAFT`: a morph refined from a finished draft skips the levels up to the draft's
+/// size and starts from the draft's path prolongated, whose energy is below the cross-fade
+/// start of a fresh run; a draft of another `K` is refused before any work.
+#[test]
+fn refining_a_draft() {
+    let dir = scratch("init");
+    let run = |size: &str, args: &[&str], out: &Path| {
+        deepmorph()
+            .args(["demo", "--size", size, "-q", "--backend", "flex", "-o"])
+            .arg(out)
+            .args(args)
+            .assert()
+            .success();
+        let log = std::fs::read_to_string(out.join("energy.csv")).unwrap();
+        let config: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+        (EnergyLog::from_csv(&log).unwrap(), config)
+    };
+    let draft = dir.join("draft");
+    run("32", &["-K", "3", "--levels", "2", "--sweeps", "6"], &draft);
+    let init = ["--init", draft.to_str().unwrap()];
+    let (refined, config) = run(
+        "64",
+        &[&["-K", "3", "--levels", "3", "--sweeps", "3"][..], &init].concat(),
+        &dir.join("fine"),
+    );
+    let levels = config["outcome"]["levels"].as_array().unwrap();
+    assert_eq!(levels.len(), 1, "{levels:?}");
+    assert_eq!(levels[0]["size"], serde_json::json!([64, 64]));
+    assert!(config["config"]["init"].is_string());
+    let (fresh, _) = run(
+        "64",
+        &["-K", "3", "--levels", "1", "--sweeps", "1"],
+        &dir.join("fresh"),
+    );
+    let (start, fade) = (refined.records[0].energy, fresh.records[0].energy);
+    assert!(
+        start < fade,
+        "draft start E {start} vs cross-fade start {fade}"
+    );
+
+    let err = fails(
+        deepmorph()
+            .args(["demo", "--size", "64", "-q", "-K", "4", "--init"])
+            .arg(&draft)
+            .arg("-o")
+            .arg(dir.join("refused")),
+    );
+    assert!(err.contains("K is 3"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

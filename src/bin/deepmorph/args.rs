@@ -119,6 +119,11 @@ pub struct RunArgs {
     /// path, with frames rendered between the computed ones [default: K + 1].
     #[arg(long, value_name = "N")]
     frames: Option<usize>,
+    /// Start from a finished morph's folder (a draft) instead of the coarsest level: its
+    /// frames and deformations are prolongated to the first level larger than it, and the
+    /// levels up to its size are not run. Same K; at most the working size.
+    #[arg(long, value_name = "DIR")]
+    init: Option<PathBuf>,
     /// Print nothing but errors.
     #[arg(short, long, conflicts_with = "verbose")]
     pub quiet: bool,
@@ -228,6 +233,7 @@ impl RunArgs {
         config.fps = self.fps.or(config.fps);
         config.crf = self.crf.unwrap_or(config.crf);
         config.animation_frames = self.frames.or(config.animation_frames);
+        config.init = self.init.clone().or(config.init);
         Ok((config, inputs))
     }
 }
