@@ -21,6 +21,7 @@ use crate::eval::perceptual::feature_path;
 use crate::features::deep::deep_features;
 use crate::features::vgg::Vgg19;
 use crate::features::vgg::architecture::tap_channels;
+use crate::io::checkpoint::{load_checkpoint, save_checkpoint};
 use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
 use crate::io::output_folder::OutputFolder;
@@ -30,6 +31,7 @@ use crate::io::outputs::{
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
 use crate::model::inbetween::Clip;
+use crate::read::read_bytes;
 use crate::solver::ipalm::Schedule;
 use crate::solver::multilevel::{Draft, Morph, Multilevel};
 use crate::solver::observer::{Observer, Termination};
@@ -43,6 +45,7 @@ pub struct MorphJob {
     notes: Vec<String>,
     estimate: u64,
     estimate_time: bool,
+    resume: Option<PathBuf>,
     inject_nonfinite: Option<(usize, usize)>,
 }
 
@@ -138,6 +141,7 @@ impl MorphJob {
             notes,
             estimate,
             estimate_time: false,
+            resume: None,
             inject_nonfinite: None,
         })
     }
@@ -153,6 +157,14 @@ impl MorphJob {
     /// time to the observer ([`Observer::estimate`]; see [`crate::solver::estimate`]).
     pub fn estimate_time(mut self, yes: bool) -> Self {
         self.estimate_time = yes;
+        self
+    }
+
+    /// Continue the interrupted morph whose folder is `dir` from its checkpoint
+    /// ([`crate::io::checkpoint`]); its energy log is continued too. A folder without a
+    /// checkpoint (a morph that was not interrupted) is run from the start.
+    pub fn resume_from(mut self, dir: &Path) -> Self {
+        self.resume = Some(dir.to_path_buf());
         self
     }
 
@@ -242,8 +254,24 @@ impl MorphJob {
         if self.estimate_time {
             observer.estimate(&driver.estimate_time(&device, &u_a, &u_b, &model)?);
         }
-        let started = Instant::now();
         let mut energy = EnergyLog::default();
+        if let Some(dir) = &self.resume {
+            let sizes = self.config.solver.level_sizes(h, w)?;
+            let grid = |level: usize| {
+                Grid::new(sizes[level].0, sizes[level].1, &device, precision.dtype())
+            };
+            if let Some(resume) = load_checkpoint(dir, &sizes, grid)? {
+                driver = driver.with_resume(resume);
+                let csv = read_bytes(&dir.join("energy.csv"), 1 << 30, "energy log")?;
+                energy = EnergyLog::from_csv(&String::from_utf8_lossy(&csv)).map_err(|e| {
+                    Error::Format {
+                        path: dir.join("energy.csv"),
+                        detail: e,
+                    }
+                })?;
+            }
+        }
+        let started = Instant::now();
         let morph = driver.run_with(
             &device,
             u_a,
@@ -349,6 +377,7 @@ impl MorphResult {
         let sheet = contact_sheet(&self.frames, self.morph.anisotropy.clone(), displacement)?;
         write_png(&dir.join("sheet.png"), &sheet)?;
         save_deformations(dir, deformations)?;
+        save_checkpoint(dir, &self.morph)?;
         let csv = self.energy.to_csv();
         write_atomically(&dir.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
         let json = serde_json::to_vec_pretty(&self.record(job)).expect("records serialise");

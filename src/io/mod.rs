@@ -2,6 +2,7 @@
 //! correspondences.
 //!
 //! - [`animation`]: the morph as MP4, APNG and GIF, which of them and how fast.
+//! - [`checkpoint`]: the state an interrupted morph leaves for `--resume`.
 //! - [`energy_log`]: the energy after every sweep, written as `energy.csv`.
 //! - [`h264`] (feature `mp4`): frames to H.264 in an MP4 file.
 //! - [`images`]: image files ↔ host images ↔ tensors, crash-safe writing.
@@ -13,6 +14,7 @@
 //! - [`truth`]: Middlebury disparity PNGs and `.flo` flow files, resampled to a working size.
 
 pub mod animation;
+pub mod checkpoint;
 pub mod energy_log;
 #[cfg(feature = "mp4")]
 pub mod h264;

@@ -53,7 +53,12 @@ pub fn is_morph_output(name: &str) -> bool {
         .strip_prefix("frame_")
         .and_then(|n| n.strip_suffix(".png"))
         .is_some_and(|k| k.len() >= 2 && k.bytes().all(|b| b.is_ascii_digit()));
-    frame || output_names(0).iter().skip(1).any(|n| n == name)
+    let checkpoint = [
+        crate::io::checkpoint::CHECKPOINT_HEADER,
+        crate::io::checkpoint::CHECKPOINT_DATA,
+    ]
+    .contains(&name);
+    frame || checkpoint || output_names(0).iter().skip(1).any(|n| n == name)
 }
 
 /// File name of the run's record (`deepmorph::app::config::RunRecord`).

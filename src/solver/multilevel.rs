@@ -140,6 +140,9 @@ pub struct Morph {
     pub termination: Termination,
     /// What each level did, coarse to fine (only the levels reached).
     pub levels: Vec<LevelSummary>,
+    /// `E` after each joint sweep of the last level, from its sweep 0 (what a resumed run
+    /// needs for the tolerance's window).
+    pub history: Vec<f64>,
 }
 
 impl Morph {
@@ -194,12 +197,31 @@ pub struct Draft {
     pub deformations: Tensor<4>,
 }
 
+/// Where an interrupted morph stopped, to continue exactly from there (`--resume`): the
+/// whole iPALM state of its last level after its last full sweep.
+#[derive(Clone, Debug)]
+pub struct Resume {
+    /// The level it stopped on.
+    pub level: usize,
+    /// Joint sweeps done on that level (0: stopped during the deep model's feature-only
+    /// sweeps, which then run again from the state reached).
+    pub sweeps: usize,
+    /// `f`, `f_prev`, `φ`, `φ_prev` and the stored Lipschitz estimates.
+    pub state: LevelState,
+    /// `E` after the level's joint sweeps `0..=sweeps` (the tolerance's window).
+    pub history: Vec<f64>,
+    /// What the levels before it did.
+    pub levels: Vec<LevelSummary>,
+}
+
 /// The multilevel driver.
 #[derive(Clone, Debug)]
 pub struct Multilevel {
     config: MultilevelConfig,
     /// Where to start instead of the coarsest level.
     draft: Option<Draft>,
+    /// Where an interrupted run stopped.
+    resume: Option<Resume>,
     /// A fault to inject for testing the non-finite path (see
     /// [`inject_nonfinite`](Self::inject_nonfinite)).
     inject_nonfinite: Option<(usize, usize)>,
@@ -216,6 +238,7 @@ impl Multilevel {
         Ok(Self {
             config,
             draft: None,
+            resume: None,
             inject_nonfinite: None,
         })
     }
@@ -240,6 +263,14 @@ impl Multilevel {
         }
         self.draft = Some(draft);
         Ok(self)
+    }
+
+    /// Continues an interrupted morph from where it stopped ([`Resume`]): the levels before
+    /// are not run again, and with the same settings on a deterministic backend the result
+    /// is the one the uninterrupted run would have given.
+    pub fn with_resume(mut self, resume: Resume) -> Self {
+        self.resume = Some(resume);
+        self
     }
 
     /// For tests of what happens when the optimisation meets a NaN: after sweep `sweep` of
@@ -325,13 +356,19 @@ impl Multilevel {
             previous = Some((draft.grid.clone(), state, layout));
         }
         let mut summaries = Vec::with_capacity(sizes.len());
+        if let Some(resume) = &self.resume {
+            first = resume.level.min(sizes.len() - 1);
+            summaries = resume.levels.clone();
+        }
         for (level, &(lh, lw)) in sizes.iter().enumerate().skip(first) {
+            let resume_here = self.resume.as_ref().filter(|r| r.level == level);
             let downsampling = sizes.len() - 1 - level;
             let grid = Grid::new(lh, lw, device, dtype)?;
             let (layout, f_a, f_b) =
                 level_endpoints(model, &full, &grid, &u_a, &u_b, downsampling)?;
-            let prolongated = previous.is_some();
+            let prolongated = previous.is_some() || (resume_here.is_some() && level > 0);
             let mut state = match previous.take() {
+                _ if resume_here.is_some() => resume_here.expect("checked").state.clone(),
                 None => LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,
                 Some((coarse, coarse_state, coarse_layout)) => {
                     let up = Resize::new(&coarse, &grid);
@@ -421,20 +458,40 @@ impl Multilevel {
             // SPEC §7: after a prolongation the deep model first fits the features to the
             // prolongated deformations (pointless on the first level, where the convex
             // combination is already optimal for φ = Id).
-            let pre = if prolongated { model.pre_sweeps() } else { 0 };
+            let resumed_sweeps = resume_here.map_or(0, |r| r.sweeps);
+            let pre = if prolongated && resumed_sweeps == 0 {
+                model.pre_sweeps()
+            } else {
+                0
+            };
             let phases = [
                 (Phase::Features, pre, SweepKind::FeaturesOnly),
                 (Phase::Joint, cfg.sweeps, SweepKind::Joint),
             ];
             let mut stopped = None;
-            let mut history: Vec<f64> = Vec::new();
+            let mut history: Vec<f64> = match resume_here {
+                Some(r) if r.sweeps > 0 => r.history.clone(),
+                _ => Vec::new(),
+            };
             let mut level_stop = LevelStop::Sweeps;
-            let mut joint_sweeps = 0;
+            let mut joint_sweeps = resumed_sweeps;
             'phases: for (phase, sweeps, kind) in phases {
                 if sweeps == 0 && phase == Phase::Features {
                     continue;
                 }
-                match evaluate(&state) {
+                // A resumed level continues after its last sweep; its sweep 0 was reported.
+                let start = if phase == Phase::Joint {
+                    resumed_sweeps
+                } else {
+                    0
+                };
+                let evaluated = if start > 0 {
+                    Ok([0.0; 3])
+                } else {
+                    evaluate(&state)
+                };
+                match evaluated {
+                    Ok(_) if start > 0 => {}
                     Ok(numbers) => {
                         if phase == Phase::Joint {
                             history.push(numbers[0]);
@@ -451,7 +508,7 @@ impl Multilevel {
                         break 'phases;
                     }
                 }
-                for sweep in 1..=sweeps {
+                for sweep in start + 1..=sweeps {
                     // The last finite iterate: cheap to keep, these handles are the tensors
                     // the sweep moves into `f_prev` and `phi_prev` anyway.
                     let before = (state.f.clone(), state.phi.clone());
@@ -524,6 +581,7 @@ impl Multilevel {
                     layout,
                     termination: stopped.unwrap_or(Termination::Completed),
                     levels: summaries,
+                    history,
                 });
             }
             previous = Some((grid, state, layout));

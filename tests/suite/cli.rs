@@ -937,3 +937,84 @@ fn refining_a_draft() {
     assert!(err.contains("K is 3"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--resume`: a morph interrupted after joint sweep 2 of level 1 (of 3) leaves a checkpoint
+/// beside its outputs; resumed, it ends with the deformations, energies and level record of
+/// the uninterrupted run (flex is deterministic here), and the checkpoint is gone.
+#[test]
+fn an_interrupted_morph_resumes_where_it_stopped() {
+    let dir = scratch("resume");
+    let (whole, part) = (dir.join("whole"), dir.join("part"));
+    let args = [
+        "demo",
+        "--size",
+        "32",
+        "-q",
+        "-K",
+        "3",
+        "--levels",
+        "3",
+        "--sweeps",
+        "4",
+        "--tol",
+        "0",
+        "--backend",
+        "flex",
+        "-o",
+    ];
+    deepmorph().args(args).arg(&whole).assert().success();
+    deepmorph()
+        .env("DEEPMORPH_INTERRUPT_AT", "1:2")
+        .args(args)
+        .arg(&part)
+        .assert()
+        .code(130);
+    assert!(part.join("checkpoint.json").is_file() && part.join("checkpoint.f32").is_file());
+    let resumed_run = deepmorph()
+        .args(["morph", "-v", "--resume"])
+        .arg(&part)
+        .assert()
+        .success();
+    // It continued: no sweep of level 0 or of level 1 up to sweep 2 was run again.
+    let log = String::from_utf8_lossy(&resumed_run.get_output().stderr).to_string();
+    let sweeps: Vec<&str> = log.lines().filter(|l| l.contains(" sweep ")).collect();
+    assert!(
+        sweeps[0].starts_with("level 1 (16x16) sweep    3/4"),
+        "{sweeps:?}"
+    );
+    assert!(!part.join("checkpoint.json").exists());
+    let (shape, resumed) = load_deformations(&part).unwrap();
+    let (_, uninterrupted) = load_deformations(&whole).unwrap();
+    assert_eq!(shape, [3, 2, 32, 32]);
+    let diff = resumed
+        .iter()
+        .zip(&uninterrupted)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(diff <= 1e-5, "resumed deformations differ by {diff} px");
+    let log = |d: &Path| {
+        EnergyLog::from_csv(&std::fs::read_to_string(d.join("energy.csv")).unwrap())
+            .unwrap()
+            .records
+            .iter()
+            .map(|r| (r.level, r.sweep, r.energy))
+            .collect::<Vec<_>>()
+    };
+    let (a, b) = (log(&part), log(&whole));
+    assert_eq!(a.len(), b.len());
+    for ((la, sa, ea), (lb, sb, eb)) in a.iter().zip(&b) {
+        assert_eq!((la, sa), (lb, sb));
+        assert!(
+            (ea - eb).abs() <= 1e-6 * eb.abs(),
+            "level {la} sweep {sa}: {ea} vs {eb}"
+        );
+    }
+    let record = |d: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(d.join("config.json")).unwrap()).unwrap()
+    };
+    assert_eq!(
+        record(&part)["outcome"]["levels"],
+        record(&whole)["outcome"]["levels"]
+    );
+    assert_eq!(record(&part)["outcome"]["termination"], "completed");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

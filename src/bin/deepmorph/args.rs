@@ -43,12 +43,17 @@ fn deep() -> DeepConfig {
 pub struct RunArgs {
     /// Output folder: new, empty, or (with --force) holding an earlier morph. It appears
     /// complete when the run ends; until then the files are in a hidden sibling folder.
-    #[arg(short, long)]
-    pub output: PathBuf,
+    #[arg(short, long, required_unless_present = "resume")]
+    output: Option<PathBuf>,
     /// Replace the morph in an existing output folder (atomically, once the new one is
     /// complete). A folder holding files deepmorph does not write is never replaced.
     #[arg(long)]
     pub force: bool,
+    /// Continue the interrupted morph in DIR (Ctrl-C, SIGTERM, SIGHUP) from the checkpoint it
+    /// left there, with its recorded settings and inputs, replacing it when done (a morph
+    /// that was not interrupted is run again from the start).
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["config", "output"])]
+    pub resume: Option<PathBuf>,
     /// Start from the settings (and, for `morph` without images, the inputs) of an earlier
     /// run's config.json; the flags given override them.
     #[arg(long, value_name = "FILE")]
@@ -133,9 +138,22 @@ pub struct RunArgs {
 }
 
 impl RunArgs {
-    /// The base settings and inputs: `--config`'s, or the library's defaults for `base`.
+    /// The output folder: `-o`, or the folder `--resume` continues.
+    pub fn output(&self) -> &std::path::Path {
+        self.output
+            .as_deref()
+            .or(self.resume.as_deref())
+            .expect("clap requires -o unless --resume")
+    }
+
+    /// The base settings and inputs: `--config`'s (or `--resume`'s folder's), or the
+    /// library's defaults for `base`.
     fn base(&self, base: MorphConfig) -> Result<(MorphConfig, Option<Inputs>)> {
-        Ok(match &self.config {
+        let recorded = self
+            .config
+            .clone()
+            .or_else(|| self.resume.as_ref().map(|dir| dir.join("config.json")));
+        Ok(match &recorded {
             Some(path) => {
                 let record = RunRecord::read(path)?;
                 (record.config, Some(record.inputs))

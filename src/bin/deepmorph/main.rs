@@ -21,7 +21,7 @@ use deepmorph::eval::synthetic::{Field, warped_pair};
 use deepmorph::io::images::{RgbImage, write_png};
 use deepmorph::io::output_folder::OutputFolder;
 use deepmorph::io::outputs::save_composed;
-use deepmorph::solver::observer::Termination;
+use deepmorph::solver::observer::{Observer, Phase, SweepEvent, Termination};
 use deepmorph::{Backend, Precision};
 
 use args::{Cli, Command, RunArgs, working_size};
@@ -99,6 +99,9 @@ fn run(cli: Cli) -> Result<i32> {
         } => {
             let (mut config, recorded) = run.resolve(MorphConfig::default())?;
             config.size = working_size(size, max_side, config.size);
+            if run.resume.is_some() && !images.is_empty() {
+                anyhow::bail!("--resume continues the recorded morph: give no images");
+            }
             let inputs = match (images.len(), recorded) {
                 (0, Some(recorded)) => recorded,
                 (2, _) => {
@@ -130,11 +133,18 @@ fn run(cli: Cli) -> Result<i32> {
 
 fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     let mut job = MorphJob::prepare(config, inputs)?.estimate_time(!args.quiet);
-    if let Some((level, sweep)) = injected_fault()? {
+    if let Some((level, sweep)) = level_and_sweep("DEEPMORPH_INJECT_NONFINITE")? {
         job = job.inject_nonfinite(level, sweep);
     }
-    let folder = job.output_folder(&args.output, args.force)?;
+    if let Some(dir) = &args.resume {
+        job = job.resume_from(dir);
+    }
+    let folder = job.output_folder(args.output(), args.force || args.resume.is_some())?;
     let interrupt = stop_on_signals(folder.path().to_path_buf())?;
+    let mut interrupt_at = InterruptAt {
+        at: level_and_sweep("DEEPMORPH_INTERRUPT_AT")?,
+        flag: Arc::clone(&interrupt),
+    };
     let verbosity = verbosity(args);
     let config = job.config();
     let (h, w) = job.working_size();
@@ -157,7 +167,7 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
         );
     }
     let mut progress = Progress::new(verbosity);
-    let result = job.run(&mut progress, &interrupt)?;
+    let result = job.run(&mut (&mut progress, &mut interrupt_at), &interrupt)?;
     drop(progress);
     let writing = WRITING
         .lock()
@@ -233,7 +243,7 @@ fn verbosity(args: &RunArgs) -> Verbosity {
 /// `deepmorph morph A B C ...`: one morph per consecutive pair, in one output folder.
 fn chain(config: MorphConfig, images: Vec<PathBuf>, args: &RunArgs) -> Result<i32> {
     let job = ChainJob::prepare(config, images)?.estimate_time(!args.quiet);
-    let folder = job.output_folder(&args.output, args.force)?;
+    let folder = job.output_folder(args.output(), args.force)?;
     let interrupt = stop_on_signals(folder.path().to_path_buf())?;
     let count = job.segments().len();
     let mut progress = Progress::new(verbosity(args));
@@ -282,10 +292,12 @@ fn chain(config: MorphConfig, images: Vec<PathBuf>, args: &RunArgs) -> Result<i3
     })
 }
 
-/// `DEEPMORPH_INJECT_NONFINITE=LEVEL:SWEEP` makes the solver meet a NaN after that sweep: the
-/// tests' way to check the non-finite path end to end (outputs written, exit status 3).
-fn injected_fault() -> Result<Option<(usize, usize)>> {
-    let Some(value) = std::env::var_os("DEEPMORPH_INJECT_NONFINITE") else {
+/// `LEVEL:SWEEP` from the environment variable `name`, for the tests' hooks:
+/// `DEEPMORPH_INJECT_NONFINITE` makes the solver meet a NaN after that sweep (the non-finite
+/// path end to end: outputs written, exit status 3); `DEEPMORPH_INTERRUPT_AT` raises the
+/// interrupt flag after that joint sweep, as a signal would (`--resume` end to end).
+fn level_and_sweep(name: &str) -> Result<Option<(usize, usize)>> {
+    let Some(value) = std::env::var_os(name) else {
         return Ok(None);
     };
     let value = value.to_string_lossy();
@@ -294,7 +306,21 @@ fn injected_fault() -> Result<Option<(usize, usize)>> {
         .and_then(|(l, s)| Some((l.trim().parse().ok()?, s.trim().parse().ok()?)));
     parsed
         .map(Some)
-        .with_context(|| format!("DEEPMORPH_INJECT_NONFINITE={value} is not LEVEL:SWEEP"))
+        .with_context(|| format!("{name}={value} is not LEVEL:SWEEP"))
+}
+
+/// Raises the interrupt flag after joint sweep `at` (level, sweep): see [`level_and_sweep`].
+struct InterruptAt {
+    at: Option<(usize, usize)>,
+    flag: Arc<AtomicBool>,
+}
+
+impl Observer for InterruptAt {
+    fn sweep(&mut self, e: &SweepEvent<'_>) {
+        if e.phase == Phase::Joint && self.at == Some((e.level, e.sweep)) {
+            self.flag.store(true, Ordering::SeqCst);
+        }
+    }
 }
 
 /// The files `deepmorph warp` writes.

@@ -1,0 +1,153 @@
+//! The checkpoint an interrupted morph leaves beside its outputs, so that `--resume` can
+//! continue it exactly: `checkpoint.json` (where it stopped, the Lipschitz estimates, the
+//! tolerance's window, the finished levels) and `checkpoint.f32` (the whole iPALM state of
+//! the level it stopped on: `f`, `f_prev`, `φ`, `φ_prev`, little-endian float32).
+
+use std::path::Path;
+
+use burn::tensor::Tensor;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::io::images::write_atomically;
+use crate::model::grid::{Grid, host_values};
+use crate::read::read_bytes;
+use crate::solver::ipalm::LevelState;
+use crate::solver::multilevel::{Morph, Resume};
+use crate::solver::observer::{LevelSummary, Termination};
+
+/// The checkpoint's header.
+pub const CHECKPOINT_HEADER: &str = "checkpoint.json";
+/// The checkpoint's values.
+pub const CHECKPOINT_DATA: &str = "checkpoint.f32";
+
+/// What `checkpoint.json` holds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct Header {
+    level: usize,
+    sweeps: usize,
+    steps: usize,
+    channels: usize,
+    height: usize,
+    width: usize,
+    l_phi: Vec<f64>,
+    l_f: Vec<Vec<f64>>,
+    history: Vec<f64>,
+    levels: Vec<LevelSummary>,
+}
+
+/// Writes the checkpoint of `morph` into `dir` if it was interrupted (nothing otherwise).
+///
+/// # Errors
+///
+/// A file cannot be written.
+pub fn save_checkpoint(dir: &Path, morph: &Morph) -> Result<()> {
+    let Termination::Interrupted { level, sweep } = morph.termination else {
+        return Ok(());
+    };
+    let state = &morph.state;
+    let [_, channels, height, width] = state.f[0].dims();
+    let header = Header {
+        level,
+        sweeps: sweep,
+        steps: state.steps(),
+        channels,
+        height,
+        width,
+        l_phi: state.l_phi.clone(),
+        l_f: state.l_f.clone(),
+        history: morph.history.clone(),
+        levels: morph
+            .levels
+            .iter()
+            .filter(|l| l.level < level)
+            .cloned()
+            .collect(),
+    };
+    let mut bytes = Vec::new();
+    for part in [&state.f, &state.f_prev, &state.phi, &state.phi_prev] {
+        for v in host_values(Tensor::cat(part.clone(), 0))? {
+            // The state is float32: the round trip through f64 is exact.
+            bytes.extend_from_slice(&(v as f32).to_le_bytes());
+        }
+    }
+    write_atomically(&dir.join(CHECKPOINT_DATA), |w| w.write_all(&bytes))?;
+    let json = serde_json::to_vec_pretty(&header).expect("checkpoints serialise");
+    write_atomically(&dir.join(CHECKPOINT_HEADER), |w| w.write_all(&json))
+}
+
+/// Reads the checkpoint in `dir` for a morph whose levels are `grids` (`(H, W)`, coarse to
+/// fine), its state on the grid `grid(level)` makes; `None` if the folder has no
+/// checkpoint (the morph was not interrupted).
+///
+/// # Errors
+///
+/// A malformed or truncated checkpoint, or one whose level does not fit `grids`.
+pub fn load_checkpoint(
+    dir: &Path,
+    grids: &[(usize, usize)],
+    grid: impl Fn(usize) -> Result<Grid>,
+) -> Result<Option<Resume>> {
+    let path = dir.join(CHECKPOINT_HEADER);
+    if !path.is_file() {
+        return Ok(None);
+    }
+    let bad = |detail: String| Error::Format {
+        path: path.clone(),
+        detail,
+    };
+    let header: Header = serde_json::from_slice(&read_bytes(&path, 16 << 20, "checkpoint")?)
+        .map_err(|e| bad(format!("not a deepmorph checkpoint: {e}")))?;
+    let (k, c, h, w) = (header.steps, header.channels, header.height, header.width);
+    if grids.get(header.level) != Some(&(h, w)) || k == 0 {
+        return Err(bad(format!(
+            "level {} of {h}x{w} does not fit this morph's levels {grids:?}",
+            header.level
+        )));
+    }
+    let frame = c * h * w;
+    let deformation = 2 * h * w;
+    let count = 2 * (k + 1) * frame + 2 * k * deformation;
+    let data = read_bytes(
+        &dir.join(CHECKPOINT_DATA),
+        4 * count as u64,
+        "checkpoint values",
+    )?;
+    if data.len() != 4 * count {
+        return Err(bad(format!(
+            "{CHECKPOINT_DATA} holds {} bytes, its header says {}",
+            data.len(),
+            4 * count
+        )));
+    }
+    let values: Vec<f64> = data
+        .chunks_exact(4)
+        .map(|b| f64::from(f32::from_le_bytes(b.try_into().expect("4 bytes"))))
+        .collect();
+    let grid = grid(header.level)?;
+    let mut at = 0;
+    let mut take = |n: usize, size: usize, channels: usize| -> Vec<Tensor<4>> {
+        (0..n)
+            .map(|_| {
+                let t = grid.tensor(values[at..at + size].to_vec(), [1, channels, h, w]);
+                at += size;
+                t
+            })
+            .collect()
+    };
+    let f = take(k + 1, frame, c);
+    let f_prev = take(k + 1, frame, c);
+    let phi = take(k, deformation, 2);
+    let phi_prev = take(k, deformation, 2);
+    let mut state = LevelState::new(f, phi, header.l_phi, header.l_f)?;
+    state.f_prev = f_prev;
+    state.phi_prev = phi_prev;
+    Ok(Some(Resume {
+        level: header.level,
+        sweeps: header.sweeps,
+        state,
+        history: header.history,
+        levels: header.levels,
+    }))
+}
