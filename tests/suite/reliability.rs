@@ -94,14 +94,19 @@ fn listing(dir: &Path) -> Vec<String> {
     names
 }
 
-/// Asserts that `dir` holds exactly the outputs of one complete morph of `k` steps.
+/// Asserts that `dir` holds exactly the outputs of one complete morph of `k` steps (with
+/// its checkpoint when it was interrupted).
 fn holds_one_morph(dir: &Path, k: usize) {
-    let mut expected = output_names(k);
-    expected.sort();
-    assert_eq!(listing(dir), expected, "{}", dir.display());
     let record: serde_json::Value =
         serde_json::from_slice(&std::fs::read(dir.join("config.json")).unwrap()).unwrap();
     assert_eq!(record["config"]["solver"]["steps"], k);
+    let mut expected = output_names(k);
+    let termination = record["outcome"]["termination"].as_str().unwrap();
+    if termination.starts_with("interrupted") {
+        expected.extend(["checkpoint.json", "checkpoint.f32"].map(String::from));
+    }
+    expected.sort();
+    assert_eq!(listing(dir), expected, "{}", dir.display());
 }
 
 /// Asserts that `parent` holds nothing but `names` (no staging folder, no temporary file).
