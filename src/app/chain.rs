@@ -17,7 +17,7 @@ use crate::error::{Error, Result};
 use crate::eval::metrics::Metrics;
 use crate::io::animation::VideoFormat;
 use crate::io::output_folder::OutputFolder;
-use crate::io::outputs::is_morph_output;
+use crate::io::outputs::{is_morph_output, written_name};
 use crate::solver::observer::{Observer, Termination};
 
 /// The most images a chain takes (a bound on the work a typo can start).
@@ -41,10 +41,7 @@ pub fn is_chain_output(name: &str) -> bool {
             segment && (rest.is_empty() || is_morph_output(rest))
         }
         None => {
-            let name = match name.strip_prefix('.').and_then(|n| n.rsplit_once(".tmp-")) {
-                Some((file, pid)) if pid.bytes().all(|b| b.is_ascii_digit()) => file,
-                _ => name,
-            };
+            let name = written_name(name);
             VideoFormat::ALL.iter().any(|f| f.file_name() == name)
         }
     }
@@ -110,8 +107,7 @@ impl ChainJob {
         &self.segments
     }
 
-    /// Before each segment, `time` asks the observer for its estimate, as
-    /// [`MorphJob::estimate_time`].
+    /// Each segment estimates its time before it runs, as [`MorphJob::estimate_time`].
     pub fn estimate_time(mut self, yes: bool) -> Self {
         self.segments = self
             .segments

@@ -31,7 +31,6 @@ use crate::io::outputs::{
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
 use crate::model::inbetween::Clip;
-use crate::read::read_bytes;
 use crate::solver::ipalm::Schedule;
 use crate::solver::multilevel::{Draft, Morph, Multilevel};
 use crate::solver::observer::{Observer, Termination};
@@ -262,13 +261,7 @@ impl MorphJob {
             };
             if let Some(resume) = load_checkpoint(dir, &sizes, grid)? {
                 driver = driver.with_resume(resume);
-                let csv = read_bytes(&dir.join("energy.csv"), 1 << 30, "energy log")?;
-                energy = EnergyLog::from_csv(&String::from_utf8_lossy(&csv)).map_err(|e| {
-                    Error::Format {
-                        path: dir.join("energy.csv"),
-                        detail: e,
-                    }
-                })?;
+                energy = EnergyLog::read(&dir.join("energy.csv"))?;
             }
         }
         let started = Instant::now();

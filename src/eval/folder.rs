@@ -87,10 +87,7 @@ impl MorphFolder {
         let frames = (0..=k).map(frame).collect::<Result<Vec<_>>>()?;
         let endpoints = (frames[0].to_tensor(&grid)?, frames[k].to_tensor(&grid)?);
 
-        let csv =
-            String::from_utf8_lossy(&read_bytes(&dir.join("energy.csv"), 1 << 30, "energy log")?)
-                .into_owned();
-        let energy = EnergyLog::from_csv(&csv).map_err(|e| format("energy.csv", e))?;
+        let energy = EnergyLog::read(&dir.join("energy.csv"))?;
         Ok(Self {
             steps: k,
             deformations,

@@ -65,6 +65,9 @@ pub const DEFAULT_SECONDS: f64 = 3.0;
 /// 50 frames per second GIF players would slow the clip down.
 pub const FPS_RANGE: std::ops::RangeInclusive<f64> = 0.1..=50.0;
 
+/// The quantisers `--crf` takes: H.264's 0 (near lossless) to 51 (smallest).
+pub const QUALITY_RANGE: std::ops::RangeInclusive<u8> = 0..=51;
+
 /// The MP4's quantiser when none is given, the number x264 users know as "visually
 /// lossless". Measured on the `faces` draft morph (128², 16 frames): 2.1 kB per frame, RGB
 /// PSNR 36.8 dB against the PNG frames, most of the loss being 4:2:0's halved chroma
@@ -127,7 +130,7 @@ impl Playback {
                 ),
             ));
         }
-        if self.quality > 51 {
+        if !QUALITY_RANGE.contains(&self.quality) {
             return Err(Error::invalid(
                 "crf",
                 self.quality,

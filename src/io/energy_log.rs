@@ -3,6 +3,10 @@
 
 use std::fmt::Write as _;
 
+use std::path::Path;
+
+use crate::error::{Error, Result};
+use crate::read::read_bytes;
 use crate::solver::observer::{LevelStop, Observer, Phase, SweepEvent};
 
 /// One line of `energy.csv`.
@@ -46,6 +50,19 @@ pub struct EnergyLog {
 }
 
 impl EnergyLog {
+    /// Reads an `energy.csv` (at most 1 GiB).
+    ///
+    /// # Errors
+    ///
+    /// [`Error::Io`] or [`Error::Format`] naming the file.
+    pub fn read(path: &Path) -> Result<Self> {
+        let bytes = read_bytes(path, 1 << 30, "energy log")?;
+        Self::from_csv(&String::from_utf8_lossy(&bytes)).map_err(|detail| Error::Format {
+            path: path.to_path_buf(),
+            detail,
+        })
+    }
+
     /// The log as CSV, with a header line. Lipschitz constants are `;`-separated lists.
     pub fn to_csv(&self) -> String {
         let mut out = String::from(

@@ -16,14 +16,12 @@ use openh264::encoder::{
 use openh264::formats::YUVSlices;
 
 use crate::error::{Error, Result};
+use crate::io::animation::QUALITY_RANGE;
 use crate::io::images::write_atomically;
 use crate::io::mp4::{Sample, Track, mux};
 
 /// Time units per second of the video track: the usual 90 kHz of video timestamps.
 const TIMESCALE: u32 = 90_000;
-
-/// The quantiser range `--crf` takes: H.264's 0 (near lossless) to 51 (smallest).
-pub const QUALITY_RANGE: std::ops::RangeInclusive<u8> = 0..=51;
 
 /// A planar 4:2:0 picture.
 struct Yuv420 {
@@ -175,7 +173,11 @@ fn encode(
             sync: kind == FrameType::IDR,
         });
     }
-    let (width, height) = (to_yuv420(first).width, to_yuv420(first).height);
+    // Odd sides were padded to even.
+    let (width, height) = (
+        first.width().next_multiple_of(2),
+        first.height().next_multiple_of(2),
+    );
     Ok(Track {
         width: u16::try_from(width).map_err(|_| "wider than 65535 px")?,
         height: u16::try_from(height).map_err(|_| "taller than 65535 px")?,

@@ -42,13 +42,19 @@ pub fn output_names(k: usize) -> Vec<String> {
     names
 }
 
+/// The file a temporary file of [`crate::io::images::write_atomically`] (`.NAME.tmp-PID`)
+/// stands for, or `name` itself.
+pub fn written_name(name: &str) -> &str {
+    match name.strip_prefix('.').and_then(|n| n.rsplit_once(".tmp-")) {
+        Some((file, pid)) if !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()) => file,
+        _ => name,
+    }
+}
+
 /// Whether `name` is a file a morph writes into its output folder (for any `K`), or a
 /// temporary one of those left by a killed writer ([`crate::io::images::write_atomically`]).
 pub fn is_morph_output(name: &str) -> bool {
-    let name = match name.strip_prefix('.').and_then(|n| n.rsplit_once(".tmp-")) {
-        Some((file, pid)) if !pid.is_empty() && pid.bytes().all(|b| b.is_ascii_digit()) => file,
-        _ => name,
-    };
+    let name = written_name(name);
     let frame = name
         .strip_prefix("frame_")
         .and_then(|n| n.strip_suffix(".png"))

@@ -367,10 +367,10 @@ impl Multilevel {
             let (layout, f_a, f_b) =
                 level_endpoints(model, &full, &grid, &u_a, &u_b, downsampling)?;
             let prolongated = previous.is_some() || (resume_here.is_some() && level > 0);
-            let mut state = match previous.take() {
-                _ if resume_here.is_some() => resume_here.expect("checked").state.clone(),
-                None => LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,
-                Some((coarse, coarse_state, coarse_layout)) => {
+            let mut state = match (resume_here, previous.take()) {
+                (Some(resume), _) => resume.state.clone(),
+                (None, None) => LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,
+                (None, Some((coarse, coarse_state, coarse_layout))) => {
                     let up = Resize::new(&coarse, &grid);
                     let mut f = Vec::with_capacity(k + 1);
                     f.push(f_a.clone());
@@ -485,20 +485,15 @@ impl Multilevel {
                 } else {
                     0
                 };
-                let evaluated = if start > 0 {
-                    Ok([0.0; 3])
-                } else {
-                    evaluate(&state)
-                };
-                match evaluated {
-                    Ok(_) if start > 0 => {}
-                    Ok(numbers) => {
+                match (start == 0).then(|| evaluate(&state)) {
+                    None => {}
+                    Some(Ok(numbers)) => {
                         if phase == Phase::Joint {
                             history.push(numbers[0]);
                         }
                         report_sweep(phase, 0, None, &state, numbers, None)
                     }
-                    Err(what) => {
+                    Some(Err(what)) => {
                         stopped = Some(Termination::NonFinite {
                             level,
                             sweep: 0,
