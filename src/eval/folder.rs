@@ -18,7 +18,6 @@ use crate::io::images::RgbImage;
 use crate::io::outputs::{CONFIG, DEFORMATIONS_HEADER, frame_name, load_deformations};
 use crate::io::truth::Correspondence;
 use crate::model::grid::Grid;
-use crate::read::read_bytes;
 
 /// A morph's output directory, read back.
 pub struct MorphFolder {
