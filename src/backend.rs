@@ -61,6 +61,9 @@ pub struct Capabilities {
     pub float64: bool,
     /// How the warp reads spline coefficients fastest.
     pub gather: Gather,
+    /// Whether a deformation step's linearisation is reduced over the channels by the fused
+    /// host kernel ([`crate::model::slopes`]): flex. The others compose it from tensor ops.
+    pub fused_linearisation: bool,
 }
 
 impl Capabilities {
@@ -71,10 +74,12 @@ impl Capabilities {
             Some(backend) => Self {
                 float64: backend.supports(Precision::F64),
                 gather: backend.warp_gather(),
+                fused_linearisation: backend == Backend::Flex,
             },
             None => Self {
                 float64: false,
                 gather: Gather::Elements,
+                fused_linearisation: false,
             },
         }
     }

@@ -4,6 +4,7 @@ use burn::tensor::{DType, Device, FloatDType, Tensor, TensorData};
 
 use crate::backend::{Capabilities, Gather};
 use crate::error::{Error, Result};
+use crate::model::decision;
 use crate::model::stencil::Matrix;
 
 /// Largest side a working size may have (a 16384² deep morph would need terabytes); saved
@@ -79,6 +80,12 @@ impl Grid {
         }
     }
 
+    /// Whether this grid's backend reduces a linearisation with the fused kernel
+    /// ([`crate::model::slopes`]).
+    pub fn fused_linearisation(&self) -> bool {
+        self.capabilities.fused_linearisation
+    }
+
     /// How the warp reads spline coefficients on this grid's backend.
     pub fn gather(&self) -> Gather {
         self.capabilities.gather
@@ -90,10 +97,26 @@ impl Grid {
     /// and partial sums in float32 keep a systematic rounding bias of the same order (seen
     /// with 256-value lines: 2.4e-6), enough to turn accept/reject near convergence into noise.
     pub fn decision_sum<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
-        let t = t.detach();
         match self.accumulation() {
-            Accumulation::Float64 => t.cast(FloatDType::F64).sum(),
-            Accumulation::Float32 => t.sum(),
+            Accumulation::Float64 => decision::sum(t),
+            Accumulation::Float32 => t.detach().sum(),
+        }
+    }
+
+    /// [`decision_sum`](Self::decision_sum) of `a · b` (entrywise), the products taken in
+    /// float64 where the sum is.
+    pub fn decision_dot<const D: usize>(&self, a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
+        match self.accumulation() {
+            Accumulation::Float64 => decision::dot(a, b),
+            Accumulation::Float32 => (a.detach() * b.detach()).sum(),
+        }
+    }
+
+    /// [`decision_sum`](Self::decision_sum) of `t²`: `‖t‖²`.
+    pub fn decision_norm2<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
+        match self.accumulation() {
+            Accumulation::Float64 => decision::sum_squares(t),
+            Accumulation::Float32 => t.detach().square().sum(),
         }
     }
 

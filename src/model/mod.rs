@@ -3,6 +3,7 @@
 //! their Jacobian, the energy terms, resampling between levels, and what a feature vector
 //! holds. Nothing here iterates, reads files or knows which backend runs it.
 //!
+//! - [`decision`]: the float64 sums that decide backtracking tests (SPEC §6).
 //! - [`grid`]: the pixel grid of a level, its device, dtype and backend capabilities, and
 //!   the host read-back.
 //! - [`stencil`], [`separable`]: the 1-D mirror-boundary operators (SPEC §0) and their
@@ -11,21 +12,26 @@
 //! - [`deformation`]: Jacobian and admissibility (SPEC §0, §2).
 //! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5).
 //! - [`params`]: the energy's parameters with SPEC §9's defaults.
-//! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6).
+//! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6); [`slopes`]:
+//!   the linearisation's per-pixel moments over the channels, fused.
 //! - [`resample`]: bilinear resizing and prolongation between levels (SPEC §7).
 //! - [`inbetween`]: frames between the computed ones, for a smooth clip.
 //! - [`layout`], [`feature_model`]: the channels of a feature vector and the RGB or deep
 //!   feature vectors of each level (SPEC §4).
 
+pub mod decision;
 pub mod deformation;
 pub mod energy;
 pub mod feature_model;
 pub mod grid;
+#[cfg(feature = "flex")]
+pub(crate) mod host_view;
 pub mod inbetween;
 pub mod layout;
 pub mod params;
 pub mod resample;
 pub mod separable;
+pub mod slopes;
 pub mod sobel;
 pub mod stencil;
 pub mod warp;

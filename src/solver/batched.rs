@@ -22,7 +22,7 @@ use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{
     DeformationStep, FeatureStep, Ipalm, LevelState, SweepKind, SweepReport, read_scalars,
 };
-use crate::solver::prox::{LinearisedData, linearise};
+use crate::solver::prox::LinearisedData;
 
 /// Item `i` of a stacked tensor, `[1, …]`.
 fn item(t: &Tensor<4>, i: usize) -> Tensor<4> {
@@ -136,16 +136,17 @@ impl Deformations<'_> {
                 ),
             });
         }
-        let lin = linearise(
-            ipalm.energy.bspline(),
-            &ipalm.sobel,
-            self.coeffs.clone(),
-            self.before.clone(),
-            point.clone(),
-        );
         let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
         Ok(Linearised {
-            data: LinearisedData::new(grid, lin, point.clone(), kappa),
+            data: LinearisedData::around(
+                grid,
+                ipalm.energy.bspline(),
+                &ipalm.sobel,
+                self.coeffs.clone(),
+                self.before.clone(),
+                point.clone(),
+                kappa,
+            ),
             point,
             smooth: v[..k].to_vec(),
             gradient,

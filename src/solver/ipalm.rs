@@ -24,7 +24,7 @@ use crate::model::params::EnergyParams;
 use crate::model::sobel::Sobel;
 use crate::model::warp::Sampler;
 use crate::solver::backtracking::{Backtracking, Search, Trial};
-use crate::solver::prox::{LinearisedData, linearise};
+use crate::solver::prox::LinearisedData;
 
 /// The solver's settings beyond the energy (SPEC §6, §9).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -359,8 +359,7 @@ impl DeformationProblem<'_> {
                 * 2.0
                 * ipalm.layout.channels() as f64
                 * grid.pixels() as f64);
-        let e =
-            self.smooth_decision(phi) + grid.decision_sum(residual.square()).mul_scalar(data_scale);
+        let e = self.smooth_decision(phi) + grid.decision_norm2(residual).mul_scalar(data_scale);
         to_host(e)[0]
     }
 
@@ -382,7 +381,7 @@ impl DeformationProblem<'_> {
             grid,
             vec![
                 self.smooth_decision(point.clone()),
-                grid.decision_sum(gradient.clone().square()),
+                grid.decision_norm2(gradient.clone()),
             ],
         );
         if !(v[0].is_finite() && v[1].is_finite()) {
@@ -393,16 +392,17 @@ impl DeformationProblem<'_> {
                 ),
             });
         }
-        let lin = linearise(
+        let p = ipalm.energy.params();
+        let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
+        let data = LinearisedData::around(
+            grid,
             ipalm.energy.bspline(),
             &ipalm.sobel,
             self.coeffs_k.clone(),
             self.f_km1.clone(),
             point.clone(),
+            kappa,
         );
-        let p = ipalm.energy.params();
-        let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
-        let data = LinearisedData::new(grid, lin, point.clone(), kappa);
         Ok(Linearised {
             point,
             smooth: v[0],
@@ -426,8 +426,8 @@ impl DeformationProblem<'_> {
                 vec![
                     jacobian(candidate.clone()).det().min().reshape([1]),
                     self.smooth_decision(candidate.clone()),
-                    grid.decision_sum(lin.gradient.clone() * d.clone()),
-                    grid.decision_sum(d.square()),
+                    grid.decision_dot(lin.gradient.clone(), d.clone()),
+                    grid.decision_norm2(d),
                 ],
             );
             // The prox fixes the boundary exactly, so admissibility is det J > 0 (a NaN
@@ -705,7 +705,7 @@ impl Ipalm {
                 &self.grid,
                 vec![
                     problem.decision(&residuals),
-                    self.grid.decision_sum(grad.clone().square()),
+                    self.grid.decision_norm2(grad.clone()),
                 ],
             );
             let (q_tilde, grad_norm2) = (v[0], v[1]);
@@ -798,7 +798,6 @@ impl FeatureProblem<'_> {
         let c_tot = self.ipalm.layout.channels() as f64;
         let delta = self.ipalm.energy.params().delta;
         let scale = self.steps / (delta * 2.0 * c_tot * grid.pixels() as f64);
-        (grid.decision_sum(moved.clone().square()) + grid.decision_sum(fixed.clone().square()))
-            .mul_scalar(scale)
+        (grid.decision_norm2(moved.clone()) + grid.decision_norm2(fixed.clone())).mul_scalar(scale)
     }
 }

@@ -5,6 +5,7 @@ use burn::tensor::Tensor;
 
 use crate::model::deformation::with_identity_boundary;
 use crate::model::grid::Grid;
+use crate::model::slopes;
 use crate::model::sobel::Sobel;
 use crate::model::warp::BSpline;
 
@@ -79,6 +80,38 @@ impl LinearisedData {
             a01: channel_sum(l0.clone() * l1.clone()),
             a11: channel_sum(l1.clone().square()),
             v: Tensor::cat(vec![channel_sum(l0 * q.clone()), channel_sum(l1 * q)], 1),
+        }
+    }
+
+    /// The linearisation around `phi_tilde` reduced for the prox with weight
+    /// `κ = K / (δ · C_tot · H · W)`: [`linearise`] then [`new`](Self::new), or on a grid
+    /// with the fused kernel, the same moments in one pass ([`crate::model::slopes`]).
+    ///
+    /// # Shapes
+    /// - `coeffs_k`: `P f_k`, `[N, C, H, W]`; `f_km1`: `[N, C, H, W]`; `phi_tilde`:
+    ///   `[N, 2, H, W]`
+    pub fn around(
+        grid: &Grid,
+        bspline: &BSpline,
+        sobel: &Sobel,
+        coeffs_k: Tensor<4>,
+        f_km1: Tensor<4>,
+        phi_tilde: Tensor<4>,
+        kappa: f64,
+    ) -> Self {
+        if !grid.fused_linearisation() {
+            let lin = linearise(bspline, sobel, coeffs_k, f_km1, phi_tilde.clone());
+            return Self::new(grid, lin, phi_tilde, kappa);
+        }
+        let warped = bspline.interpolate(coeffs_k, phi_tilde.clone());
+        let m = slopes::moments(warped, f_km1, phi_tilde);
+        Self {
+            grid: grid.clone(),
+            kappa,
+            a00: m.clone().narrow(1, 0, 1),
+            a01: m.clone().narrow(1, 1, 1),
+            a11: m.clone().narrow(1, 2, 1),
+            v: m.narrow(1, 3, 2),
         }
     }
 

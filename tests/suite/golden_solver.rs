@@ -58,6 +58,23 @@ fn prox(backend: Backend) {
         check(&format!("y_L{i}"), values(y.clone()));
         check(&format!("phi_new_L{i}"), values(data.prox(y, l)));
     }
+    // The solver's path, fused on flex (one pass over the channels), composed elsewhere.
+    let around = LinearisedData::around(
+        &grid,
+        &bspline,
+        &Sobel::new(&grid),
+        bspline.coefficients(input("f_k")),
+        input("f_km1"),
+        phi_tilde.clone(),
+        kappa,
+    );
+    for (i, l) in [golden.param("L0"), golden.param("L1")]
+        .into_iter()
+        .enumerate()
+    {
+        let y = phi_tilde.clone() - g.clone().mul_scalar(1.0 / l);
+        check(&format!("phi_new_L{i}"), values(around.prox(y, l)));
+    }
 }
 
 /// The README's loose tolerance for cases that run the backtracking.

@@ -60,18 +60,15 @@ mod flex {
 
     use super::super::host::{self, Band};
     use super::SeparableOps;
+    use crate::model::host_view::HostView;
     use crate::model::warp::host::Real;
 
-    fn apply_typed<T: Real + burn::tensor::Element>(
-        x: TensorData,
+    fn apply_typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
+        x: HostView,
         rows: TensorData,
         cols_t: TensorData,
     ) -> TensorData {
-        let (s, r, c) = (
-            x.shape().to_vec(),
-            rows.shape().to_vec(),
-            cols_t.shape().to_vec(),
-        );
+        let (s, r, c) = (x.shape(), rows.shape().to_vec(), cols_t.shape().to_vec());
         assert!(
             s.len() == 4 && r.len() == 4 && c.len() == 4 && r[3] == s[2] && c[2] == s[3],
             "separable: operators {r:?} and {c:?} do not fit the maps {s:?}"
@@ -81,11 +78,7 @@ mod flex {
         let rows = Band::new(ho, h, |i, j| r[i * h + j]);
         // `Cᵀ` is stored: C(j', j) = Cᵀ(j, j').
         let cols = Band::new(wo, w, |i, j| c[j * wo + i]);
-        let out = host::apply(
-            x.as_slice::<T>().expect("the maps' dtype is checked"),
-            &rows,
-            &cols,
-        );
+        let out = host::apply(x.values::<T>(), &rows, &cols);
         TensorData::new(out, [s[0], s[1], ho, wo])
     }
 
@@ -97,7 +90,7 @@ mod flex {
 
     impl SeparableOps for Flex {
         fn separable_apply(x: FlexTensor, rows: FlexTensor, cols_t: FlexTensor) -> FlexTensor {
-            let (x, rows, cols_t) = (x.into_data(), rows.into_data(), cols_t.into_data());
+            let (x, rows, cols_t) = (HostView::new(x), rows.into_data(), cols_t.into_data());
             let out = match x.dtype() {
                 DType::F32 => apply_typed::<f32>(x, rows, cols_t),
                 DType::F64 => apply_typed::<f64>(x, rows, cols_t),

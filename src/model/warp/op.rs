@@ -111,6 +111,7 @@ mod flex {
 
     use super::super::host::{self, Dims, Real};
     use super::{SplineOps, dims};
+    use crate::model::host_view::HostView;
 
     /// The tensor's values as contiguous host data.
     fn data(t: FlexTensor) -> TensorData {
@@ -148,40 +149,32 @@ mod flex {
         x
     }
 
-    fn sample_typed<T: Real + burn::tensor::Element>(
-        coeffs: TensorData,
-        phi: TensorData,
-        d: Dims,
-    ) -> TensorData {
+    /// The element types the kernels take: read in place from flex buffers.
+    trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
+    impl Kernel for f32 {}
+    impl Kernel for f64 {}
+
+    fn sample_typed<T: Kernel>(coeffs: &HostView, phi: &HostView, d: Dims) -> TensorData {
         let mut out = vec![T::default(); d.n * d.c * d.ho * d.wo];
-        host::sample(slice(&coeffs), slice(&phi), &mut out, d);
+        host::sample(coeffs.values(), phi.values(), &mut out, d);
         TensorData::new(out, [d.n, d.c, d.ho, d.wo])
     }
 
-    fn adjoint_typed<T: Real + burn::tensor::Element>(
-        grad: TensorData,
-        phi: TensorData,
-        d: Dims,
-    ) -> TensorData {
+    fn adjoint_typed<T: Kernel>(grad: &HostView, phi: &HostView, d: Dims) -> TensorData {
         let mut out = vec![T::default(); d.n * d.c * d.h * d.w];
-        host::sample_adjoint(slice(&grad), slice(&phi), &mut out, d);
+        host::sample_adjoint(grad.values(), phi.values(), &mut out, d);
         TensorData::new(out, [d.n, d.c, d.h, d.w])
     }
 
-    fn position_typed<T: Real + burn::tensor::Element>(
-        coeffs: TensorData,
-        phi: TensorData,
-        grad: TensorData,
+    fn position_typed<T: Kernel>(
+        coeffs: &HostView,
+        phi: &HostView,
+        grad: &HostView,
         d: Dims,
     ) -> TensorData {
         let mut out = vec![T::default(); d.n * 2 * d.ho * d.wo];
-        host::sample_position_grad(slice(&coeffs), slice(&phi), slice(&grad), &mut out, d);
+        host::sample_position_grad(coeffs.values(), phi.values(), grad.values(), &mut out, d);
         TensorData::new(out, [d.n, 2, d.ho, d.wo])
-    }
-
-    fn slice<T: burn::tensor::Element>(t: &TensorData) -> &[T] {
-        t.as_slice::<T>()
-            .expect("the spline's tensors share one float dtype")
     }
 
     impl SplineOps for Flex {
@@ -191,9 +184,9 @@ mod flex {
         }
 
         fn spline_sample(coeffs: FlexTensor, phi: FlexTensor) -> FlexTensor {
-            let (coeffs, phi) = (data(coeffs), data(phi));
-            let d = dims(&shape(&coeffs), &shape(&phi));
-            FlexTensor::from_data(typed!(coeffs.dtype(), sample_typed(coeffs, phi, d)))
+            let (coeffs, phi) = (HostView::new(coeffs), HostView::new(phi));
+            let d = dims(&coeffs.shape(), &phi.shape());
+            FlexTensor::from_data(typed!(coeffs.dtype(), sample_typed(&coeffs, &phi, d)))
         }
 
         fn spline_sample_adjoint(
@@ -202,10 +195,10 @@ mod flex {
             height: usize,
             width: usize,
         ) -> FlexTensor {
-            let (grad, phi) = (data(grad), data(phi));
-            let g = shape(&grad);
-            let d = dims(&[g[0], g[1], height, width], &shape(&phi));
-            FlexTensor::from_data(typed!(grad.dtype(), adjoint_typed(grad, phi, d)))
+            let (grad, phi) = (HostView::new(grad), HostView::new(phi));
+            let g = grad.shape();
+            let d = dims(&[g[0], g[1], height, width], &phi.shape());
+            FlexTensor::from_data(typed!(grad.dtype(), adjoint_typed(&grad, &phi, d)))
         }
 
         fn spline_sample_position_grad(
@@ -213,9 +206,16 @@ mod flex {
             phi: FlexTensor,
             grad: FlexTensor,
         ) -> FlexTensor {
-            let (coeffs, phi, grad) = (data(coeffs), data(phi), data(grad));
-            let d = dims(&shape(&coeffs), &shape(&phi));
-            FlexTensor::from_data(typed!(coeffs.dtype(), position_typed(coeffs, phi, grad, d)))
+            let (coeffs, phi, grad) = (
+                HostView::new(coeffs),
+                HostView::new(phi),
+                HostView::new(grad),
+            );
+            let d = dims(&coeffs.shape(), &phi.shape());
+            FlexTensor::from_data(typed!(
+                coeffs.dtype(),
+                position_typed(&coeffs, &phi, &grad, d)
+            ))
         }
     }
 }

@@ -1,0 +1,286 @@
+//! The per-pixel moments of the data term's slopes over the channels, fused: what a
+//! deformation step's prox needs of its linearisation (SPEC §6), in one pass over `T` and
+//! `f_{k−1}`.
+//!
+//! With `s_c = T_c + f_{k−1,c}`, `Λ_c = ½ ∇s_c` (the Sobel derivative in pixel units, mirror
+//! boundary: `∂₀` the central difference along rows smoothed `(1, 2, 1)/4` along columns,
+//! `∂₁` the transpose), `r_c = T_c − f_{k−1,c}` and `q_c = Λ_cᵀ φ̃ − r_c`:
+//! `Σ_c Λ_c Λ_cᵀ` (three entries) and `Σ_c Λ_c q_c` (two), `[N, 5, H, W]`.
+//!
+//! Composed from tensor ops (`crate::solver::prox`, every backend) this is two separable
+//! operators and about twenty passes over `C` channels with `2C`-channel intermediates; on
+//! flex a host kernel does it per row block with the channels inner. Not differentiable:
+//! the linearisation is a constant of its step. With the spline's, separable operator's and
+//! decision sums' ops, the only numerical code that names backends.
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::tensor::Tensor;
+
+use crate::model::warp::host::Real;
+
+/// The fused moments' primitive (flex only: the other backends compose them).
+#[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
+pub trait SlopeOps: Backend {
+    /// Shapes as in [`moments`].
+    fn slope_moments(
+        warped: FloatTensor<Self>,
+        prev: FloatTensor<Self>,
+        phi: FloatTensor<Self>,
+    ) -> FloatTensor<Self>;
+}
+
+/// `(Σ Λ₀², Σ Λ₀Λ₁, Σ Λ₁², Σ Λ₀ q, Σ Λ₁ q)` at every pixel (module docs). Only on a grid
+/// whose capabilities say `fused_linearisation`.
+///
+/// # Shapes
+/// - `warped` (`T[f_k, φ̃]`), `prev` (`f_{k−1}`): `[N, C, H, W]`; `phi` (`φ̃`): `[N, 2, H, W]`
+/// - output: `[N, 5, H, W]`
+pub fn moments(warped: Tensor<4>, prev: Tensor<4>, phi: Tensor<4>) -> Tensor<4> {
+    Tensor::from_dispatch(Dispatch::slope_moments(
+        warped.detach().into_dispatch(),
+        prev.detach().into_dispatch(),
+        phi.detach().into_dispatch(),
+    ))
+}
+
+/// Rows per task of [`host_moments`]: the task's five accumulator rows and the three input
+/// rows it reads per channel stay in cache.
+const ROWS_PER_TASK: usize = 4;
+
+/// The host kernel of [`moments`] on row-major slices; `out` is `[N, 5, H, W]`.
+pub fn host_moments<T: Real>(
+    warped: &[T],
+    prev: &[T],
+    phi: &[T],
+    [n, c, h, w]: [usize; 4],
+    out: &mut [T],
+) {
+    use rayon::prelude::*;
+    let plane = h * w;
+    assert!(h >= 2 && w >= 2, "the Sobel derivative needs 2 × 2 pixels");
+    assert_eq!(warped.len(), n * c * plane, "warped maps");
+    assert_eq!(prev.len(), n * c * plane, "previous frame");
+    assert_eq!(phi.len(), n * 2 * plane, "deformation");
+    assert_eq!(out.len(), n * 5 * plane, "moments");
+    let blocks = h.div_ceil(ROWS_PER_TASK);
+    let mirror = |i: isize, len: usize| -> usize {
+        let last = len as isize - 1;
+        (last - (i.abs() - last).abs()) as usize
+    };
+    let half = T::from_f64(0.5);
+    let quarter = T::from_f64(0.25);
+    let eighth = T::from_f64(0.125);
+    let two = T::from_f64(2.0);
+    let out_ptr = SharedOut(out.as_mut_ptr());
+    (0..n * blocks).into_par_iter().for_each(|task| {
+        let (b, block) = (task / blocks, task % blocks);
+        let rows = block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h);
+        let count = rows.len();
+        // The task's rows of the five moments, accumulated over the channels.
+        let mut acc = vec![T::default(); 5 * count * w];
+        let mut s = [
+            vec![T::default(); w],
+            vec![T::default(); w],
+            vec![T::default(); w],
+        ];
+        let (mut vd, mut vs) = (vec![T::default(); w], vec![T::default(); w]);
+        let phi0 = &phi[b * 2 * plane..b * 2 * plane + plane];
+        let phi1 = &phi[b * 2 * plane + plane..(b + 1) * 2 * plane];
+        for ch in 0..c {
+            let at = (b * c + ch) * plane;
+            let (tw, fp) = (&warped[at..at + plane], &prev[at..at + plane]);
+            for (r, i) in rows.clone().enumerate() {
+                let neighbours = [mirror(i as isize - 1, h), i, mirror(i as isize + 1, h)];
+                for (line, &row) in s.iter_mut().zip(&neighbours) {
+                    let (t, f) = (&tw[row * w..(row + 1) * w], &fp[row * w..(row + 1) * w]);
+                    for ((x, &a), &bb) in line.iter_mut().zip(t).zip(f) {
+                        *x = a + bb;
+                    }
+                }
+                // Along rows first: the central difference (halved below) and the (1, 2, 1)
+                // smoothing of the three lines.
+                for j in 0..w {
+                    vd[j] = s[2][j] - s[0][j];
+                    vs[j] = (s[0][j] + two * s[1][j] + s[2][j]) * quarter;
+                }
+                let (t, f) = (&tw[i * w..(i + 1) * w], &fp[i * w..(i + 1) * w]);
+                let (p0, p1) = (&phi0[i * w..(i + 1) * w], &phi1[i * w..(i + 1) * w]);
+                let row_acc = |m: usize| m * count * w + r * w;
+                for j in 0..w {
+                    let (jm, jp) = (mirror(j as isize - 1, w), mirror(j as isize + 1, w));
+                    // Λ = ½ ∇s: ∂₀ = (vd[j−1] + 2 vd[j] + vd[j+1]) / 8 (vd is twice the
+                    // central difference), ∂₁ = (vs[j+1] − vs[j−1]) / 2.
+                    let l0 = half * ((vd[jm] + two * vd[j] + vd[jp]) * eighth);
+                    let l1 = half * ((vs[jp] - vs[jm]) * half);
+                    let q = l0 * p0[j] + l1 * p1[j] - (t[j] - f[j]);
+                    acc[row_acc(0) + j] += l0 * l0;
+                    acc[row_acc(1) + j] += l0 * l1;
+                    acc[row_acc(2) + j] += l1 * l1;
+                    acc[row_acc(3) + j] += l0 * q;
+                    acc[row_acc(4) + j] += l1 * q;
+                }
+            }
+        }
+        for m in 0..5 {
+            let first = (b * 5 + m) * plane + rows.start * w;
+            // SAFETY: rows `rows` of image b are this task's alone, in each moment's plane.
+            let dst = unsafe { std::slice::from_raw_parts_mut(out_ptr.at(first), count * w) };
+            dst.copy_from_slice(&acc[m * count * w..(m + 1) * count * w]);
+        }
+    });
+}
+
+/// The output buffer, shared by tasks that write disjoint rows of it.
+#[derive(Clone, Copy)]
+struct SharedOut<T>(*mut T);
+// SAFETY: tasks write disjoint ranges (stated at the use).
+unsafe impl<T: Send> Send for SharedOut<T> {}
+unsafe impl<T: Send> Sync for SharedOut<T> {}
+
+impl<T> SharedOut<T> {
+    /// # Safety
+    ///
+    /// `i` is in bounds.
+    unsafe fn at(self, i: usize) -> *mut T {
+        unsafe { self.0.add(i) }
+    }
+}
+
+#[cfg(feature = "flex")]
+mod flex {
+    use burn::backend::Flex;
+    use burn::backend::flex::FlexTensor;
+    use burn::tensor::{DType, TensorData};
+
+    use super::{SlopeOps, host_moments};
+    use crate::model::host_view::HostView;
+    use crate::model::warp::host::Real;
+
+    fn typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
+        warped: &HostView,
+        prev: &HostView,
+        phi: &HostView,
+    ) -> TensorData {
+        let s = warped.shape();
+        assert!(
+            s.len() == 4 && prev.shape() == s && phi.shape() == [s[0], 2, s[2], s[3]],
+            "slope moments: maps {s:?}, previous frame {:?} and deformation {:?} do not fit",
+            prev.shape(),
+            phi.shape()
+        );
+        let dims = [s[0], s[1], s[2], s[3]];
+        let mut out = vec![T::default(); s[0] * 5 * s[2] * s[3]];
+        host_moments(warped.values(), prev.values(), phi.values(), dims, &mut out);
+        TensorData::new(out, [s[0], 5, s[2], s[3]])
+    }
+
+    impl SlopeOps for Flex {
+        fn slope_moments(warped: FlexTensor, prev: FlexTensor, phi: FlexTensor) -> FlexTensor {
+            let (warped, prev, phi) = (
+                HostView::new(warped),
+                HostView::new(prev),
+                HostView::new(phi),
+            );
+            assert!(
+                warped.dtype() == prev.dtype() && warped.dtype() == phi.dtype(),
+                "slope moments: dtypes differ"
+            );
+            FlexTensor::from_data(match warped.dtype() {
+                DType::F32 => typed::<f32>(&warped, &prev, &phi),
+                DType::F64 => typed::<f64>(&warped, &prev, &phi),
+                other => panic!("the slope moments run in float32 or float64, not {other:?}"),
+            })
+        }
+    }
+}
+
+mod autodiff {
+    use burn::backend::Autodiff;
+    use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+    use burn::backend::tensor::FloatTensor;
+
+    use super::SlopeOps;
+
+    /// The moments are constants of a step ([`super::moments`] detaches its inputs).
+    impl<B: SlopeOps, C: CheckpointStrategy> SlopeOps for Autodiff<B, C> {
+        fn slope_moments(
+            warped: FloatTensor<Self>,
+            prev: FloatTensor<Self>,
+            phi: FloatTensor<Self>,
+        ) -> FloatTensor<Self> {
+            assert!(
+                !warped.is_tracked() && !prev.is_tracked() && !phi.is_tracked(),
+                "the slope moments are not differentiable"
+            );
+            let (warped, _) = warped.into_parts();
+            let (prev, _) = prev.into_parts();
+            let (phi, _) = phi.into_parts();
+            FloatTensor::<Self>::new(B::slope_moments(warped, prev, phi))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::stencil::mirror_index;
+
+    /// SPEC §6's Sobel formula, written out per pixel in float64.
+    fn naive(warped: &[f64], prev: &[f64], phi: &[f64], [n, c, h, w]: [usize; 4]) -> Vec<f64> {
+        let plane = h * w;
+        let mut out = vec![0.0; n * 5 * plane];
+        let m = |i: isize, len: usize| mirror_index(i as i64, len);
+        for b in 0..n {
+            for ch in 0..c {
+                let s = |i: isize, j: isize| {
+                    let at = (b * c + ch) * plane + m(i, h) * w + m(j, w);
+                    warped[at] + prev[at]
+                };
+                for i in 0..h as isize {
+                    for j in 0..w as isize {
+                        let ws = [1.0, 2.0, 1.0];
+                        let (mut d0, mut d1) = (0.0, 0.0);
+                        for (t, wt) in (-1..=1).zip(ws) {
+                            d0 += wt * (s(i + 1, j + t) - s(i - 1, j + t)) / 8.0;
+                            d1 += wt * (s(i + t, j + 1) - s(i + t, j - 1)) / 8.0;
+                        }
+                        let (l0, l1) = (0.5 * d0, 0.5 * d1);
+                        let p = i as usize * w + j as usize;
+                        let at = (b * c + ch) * plane + p;
+                        let q = l0 * phi[b * 2 * plane + p] + l1 * phi[(b * 2 + 1) * plane + p]
+                            - (warped[at] - prev[at]);
+                        for (k, v) in [l0 * l0, l0 * l1, l1 * l1, l0 * q, l1 * q]
+                            .into_iter()
+                            .enumerate()
+                        {
+                            out[(b * 5 + k) * plane + p] += v;
+                        }
+                    }
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn the_fused_moments_are_spec_sobel_slopes_summed_over_channels() {
+        // Heights and widths on both sides of the task's row block, including 2.
+        for dims in [[2, 3, 5, 6], [1, 4, 9, 2], [1, 1, 2, 7]] {
+            let [n, c, h, w] = dims;
+            let value = |i: usize, seed: f64| (i as f64 * 0.731 + seed).sin();
+            let warped: Vec<f64> = (0..n * c * h * w).map(|i| value(i, 0.3)).collect();
+            let prev: Vec<f64> = (0..n * c * h * w).map(|i| value(i, 1.7)).collect();
+            let phi: Vec<f64> = (0..n * 2 * h * w).map(|i| 3.0 * value(i, 2.9)).collect();
+            let mut got = vec![0.0; n * 5 * h * w];
+            host_moments(&warped, &prev, &phi, dims, &mut got);
+            let want = naive(&warped, &prev, &phi, dims);
+            for (i, (g, e)) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    (g - e).abs() <= 1e-12 * (1.0 + e.abs()),
+                    "{dims:?} at {i}: {g} vs {e}"
+                );
+            }
+        }
+    }
+}
