@@ -263,13 +263,47 @@ unsafe fn solve_columns<T: Real>(
 /// (SPEC §1, exact); with `transpose`, its adjoint `Pᵀ g`. `P` is separable: the same 1-D
 /// solve along each axis, in either order.
 pub fn prefilter<T: Real>(data: &mut [T], height: usize, width: usize, transpose: bool) {
+    prefilter_from(None, data, height, width, transpose);
+}
+
+/// [`prefilter`] of `source` into `data` (same length), without a separate copy pass: each
+/// group of lines is copied just before it is solved, while it is in cache.
+pub fn prefilter_into<T: Real>(
+    source: &[T],
+    data: &mut [T],
+    height: usize,
+    width: usize,
+    transpose: bool,
+) {
+    assert_eq!(
+        source.len(),
+        data.len(),
+        "prefilter: source and target differ in length"
+    );
+    prefilter_from(Some(source), data, height, width, transpose);
+}
+
+fn prefilter_from<T: Real>(
+    source: Option<&[T]>,
+    data: &mut [T],
+    height: usize,
+    width: usize,
+    transpose: bool,
+) {
     let plane = height * width;
     assert_eq!(data.len() % plane, 0, "prefilter: data is not whole planes");
     let along_w = Tridiagonal::mirrored(width, transpose).cast::<T>();
     let along_h = Tridiagonal::mirrored(height, transpose).cast::<T>();
-    data.par_chunks_mut(width * LINES_TOGETHER)
-        .with_min_len((PIXELS_PER_TASK / (width * LINES_TOGETHER)).max(1))
-        .for_each(|group| solve_lines(group, width, &along_w));
+    let group = width * LINES_TOGETHER;
+    data.par_chunks_mut(group)
+        .enumerate()
+        .with_min_len((PIXELS_PER_TASK / group).max(1))
+        .for_each(|(g, lines)| {
+            if let Some(source) = source {
+                lines.copy_from_slice(&source[g * group..g * group + lines.len()]);
+            }
+            solve_lines(lines, width, &along_w)
+        });
     // Columns in blocks that keep a task's rows in cache and give every thread work even for
     // one plane.
     let block = 64.min(width);
@@ -737,6 +771,20 @@ mod tests {
         (0..n)
             .map(|i| (i as f64 * 0.37 + seed).sin() + 0.1 * i as f64 % 3.0)
             .collect()
+    }
+
+    #[test]
+    fn prefiltering_into_a_new_buffer_equals_prefiltering_in_place() {
+        // 3 planes of 11 × 9: line groups that end inside a plane and across planes.
+        let (h, w) = (11, 9);
+        let source: Vec<f64> = ramp(3 * h * w, 0.4);
+        for transpose in [false, true] {
+            let mut in_place = source.clone();
+            prefilter(&mut in_place, h, w, transpose);
+            let mut into = vec![0.0; source.len()];
+            prefilter_into(&source, &mut into, h, w, transpose);
+            assert_eq!(in_place, into, "transpose {transpose}");
+        }
     }
 
     #[test]

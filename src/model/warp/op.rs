@@ -149,6 +149,16 @@ mod flex {
         x
     }
 
+    /// [`prefilter_typed`] of a buffer others share: into a new one.
+    fn prefilter_shared<T: Kernel>(x: &HostView, transpose: bool) -> TensorData {
+        let s = x.shape();
+        let (h, w) = (s[s.len() - 2], s[s.len() - 1]);
+        let source = x.values::<T>();
+        let mut out = vec![T::default(); source.len()];
+        host::prefilter_into(source, &mut out, h, w, transpose);
+        TensorData::new(out, s)
+    }
+
     /// The element types the kernels take: read in place from flex buffers.
     trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
     impl Kernel for f32 {}
@@ -179,8 +189,13 @@ mod flex {
 
     impl SplineOps for Flex {
         fn spline_prefilter(x: FlexTensor, transpose: bool) -> FlexTensor {
-            let x = data(x);
-            FlexTensor::from_data(typed!(x.dtype(), prefilter_typed(x, transpose)))
+            if x.is_unique() {
+                // In place: nobody else holds the buffer.
+                let x = data(x);
+                return FlexTensor::from_data(typed!(x.dtype(), prefilter_typed(x, transpose)));
+            }
+            let x = HostView::new(x);
+            FlexTensor::from_data(typed!(x.dtype(), prefilter_shared(&x, transpose)))
         }
 
         fn spline_sample(coeffs: FlexTensor, phi: FlexTensor) -> FlexTensor {
