@@ -8,8 +8,8 @@
 //!   no float64, and its decisions sum in float32, [`crate::model::grid::Accumulation`]).
 //! - autodiff: not differentiable; the inputs are detached by the caller.
 //!
-//! With [`crate::model::warp::op`] and [`crate::model::separable::op`], the only numerical
-//! code that names backends.
+//! With [`crate::model::warp::op`], [`crate::model::separable::op`] and
+//! [`crate::model::slopes`], the only numerical code that names backends.
 
 #![allow(deprecated)] // `NdArray` is deprecated upstream in favour of flex; it stays served.
 
