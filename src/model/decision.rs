@@ -4,8 +4,9 @@
 //! - flex: one pass over the float32 (or float64) buffer, read in place, products and sums
 //!   in float64, split over the cores. Composed, the same sum was three passes: the product
 //!   or square in float32, a float64 copy of it (twice the memory) and the sum.
-//! - ndarray, wgpu: the trait's default bodies, the composed ops (wgpu is never asked: it has
-//!   no float64, and its decisions sum in float32, [`crate::model::grid::Accumulation`]).
+//! - ndarray, wgpu: the trait's default bodies, the composed ops, products in float64 too
+//!   (wgpu is never asked: it has no float64, and its decisions sum in float32,
+//!   [`crate::model::grid::Accumulation`]).
 //! - autodiff: not differentiable; the inputs are detached by the caller.
 //!
 //! With [`crate::model::warp::op`], [`crate::model::separable::op`] and
@@ -31,7 +32,11 @@ pub trait DecisionOps: Backend {
     }
     /// `Σ a·b` over every entry (shapes equal).
     fn decision_dot(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
-        Self::float_sum(Self::float_cast(Self::float_mul(a, b), FloatDType::F64))
+        let (a, b) = (
+            Self::float_cast(a, FloatDType::F64),
+            Self::float_cast(b, FloatDType::F64),
+        );
+        Self::float_sum(Self::float_mul(a, b))
     }
 }
 

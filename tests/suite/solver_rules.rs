@@ -351,7 +351,55 @@ fn a_level_stops_when_the_energy_stalls(backend: Backend) {
     }
 }
 
+/// The decision sums' own kernels (one pass, products in float64 on flex; composed on
+/// ndarray) against the same sums on the host: a plain tensor, a channel block narrowed out
+/// of a larger one (a view into a shared buffer) and the product of two of them.
+fn decision_sums_are_float64_sums_of_the_float32_values(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 24, &device, Precision::F32.dtype()).unwrap();
+    let host = |seed: f64, n: usize| -> Vec<f64> {
+        // Values that float32 holds exactly, so the host sums see what the tensor holds.
+        (0..n)
+            .map(|i| f64::from(((i as f64 * 0.618 + seed).sin() * 3.0) as f32))
+            .collect()
+    };
+    let (a, b) = (host(0.2, 5 * 16 * 24), host(1.3, 5 * 16 * 24));
+    let wide: Tensor<4> = grid.tensor(a.clone(), [1, 5, 16, 24]);
+    let other: Tensor<4> = grid.tensor(b.clone(), [1, 5, 16, 24]);
+    // Channels 1..4 of both: views with an offset into buffers the full tensors still hold.
+    let block = |t: &Tensor<4>| t.clone().narrow(1, 1, 3);
+    let plane = 16 * 24;
+    let (a_block, b_block) = (&a[plane..4 * plane], &b[plane..4 * plane]);
+    let read = |t: Tensor<1>| deepmorph::model::grid::to_host(t)[0];
+    let cases = [
+        (
+            "sum",
+            read(grid.decision_sum(wide.clone())),
+            a.iter().sum::<f64>(),
+        ),
+        (
+            "norm2 of a block",
+            read(grid.decision_norm2(block(&wide))),
+            a_block.iter().map(|x| x * x).sum(),
+        ),
+        (
+            "dot of blocks",
+            read(grid.decision_dot(block(&wide), block(&other))),
+            a_block.iter().zip(b_block).map(|(x, y)| x * y).sum(),
+        ),
+    ];
+    for (what, got, want) in cases {
+        // float64 sums in another order: equal to a few units of float64 rounding, far below
+        // float32's 6e-8.
+        assert!(
+            (got - want).abs() <= 1e-12 * want.abs().max(1.0),
+            "{backend:?} {what}: {got} vs {want}"
+        );
+    }
+}
+
 on_each_cpu_backend!(
+    decision_sums_are_float64_sums_of_the_float32_values,
     a_level_stops_when_the_energy_stalls,
     an_overshooting_extrapolation_is_restarted_not_dropped,
     an_exhausted_step_keeps_the_estimate_it_started_from,
