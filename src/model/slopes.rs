@@ -17,7 +17,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::Tensor;
 
-use crate::model::warp::host::Real;
+use crate::model::warp::host::{Real, Shared};
 
 /// The fused moments' primitive (flex only: the other backends compose them).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
@@ -72,7 +72,7 @@ pub fn host_moments<T: Real>(
     let quarter = T::from_f64(0.25);
     let eighth = T::from_f64(0.125);
     let two = T::from_f64(2.0);
-    let out_ptr = SharedOut(out.as_mut_ptr());
+    let out_ptr = Shared(out.as_mut_ptr());
     (0..n * blocks).into_par_iter().for_each(|task| {
         let (b, block) = (task / blocks, task % blocks);
         let rows = block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h);
@@ -125,26 +125,10 @@ pub fn host_moments<T: Real>(
         for m in 0..5 {
             let first = (b * 5 + m) * plane + rows.start * w;
             // SAFETY: rows `rows` of image b are this task's alone, in each moment's plane.
-            let dst = unsafe { std::slice::from_raw_parts_mut(out_ptr.at(first), count * w) };
+            let dst = unsafe { std::slice::from_raw_parts_mut(out_ptr.get(first), count * w) };
             dst.copy_from_slice(&acc[m * count * w..(m + 1) * count * w]);
         }
     });
-}
-
-/// The output buffer, shared by tasks that write disjoint rows of it.
-#[derive(Clone, Copy)]
-struct SharedOut<T>(*mut T);
-// SAFETY: tasks write disjoint ranges (stated at the use).
-unsafe impl<T: Send> Send for SharedOut<T> {}
-unsafe impl<T: Send> Sync for SharedOut<T> {}
-
-impl<T> SharedOut<T> {
-    /// # Safety
-    ///
-    /// `i` is in bounds.
-    unsafe fn at(self, i: usize) -> *mut T {
-        unsafe { self.0.add(i) }
-    }
 }
 
 #[cfg(feature = "flex")]
