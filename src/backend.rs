@@ -64,6 +64,9 @@ pub struct Capabilities {
     /// Whether a deformation step's linearisation is reduced over the channels by the fused
     /// host kernel ([`crate::model::slopes`]): flex. The others compose it from tensor ops.
     pub fused_linearisation: bool,
+    /// Whether the regulariser's weighted density `a · W(J(φ))` and its gradient are the fused
+    /// host kernels of [`crate::model::energy::density_op`]: flex. The others compose them.
+    pub fused_density: bool,
 }
 
 impl Capabilities {
@@ -75,11 +78,13 @@ impl Capabilities {
                 float64: backend.supports(Precision::F64),
                 gather: backend.warp_gather(),
                 fused_linearisation: backend == Backend::Flex,
+                fused_density: backend == Backend::Flex,
             },
             None => Self {
                 float64: false,
                 gather: Gather::Elements,
                 fused_linearisation: false,
+                fused_density: false,
             },
         }
     }

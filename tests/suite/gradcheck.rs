@@ -21,11 +21,12 @@ use deepmorph::backend::Gather;
 use deepmorph::check::data_term_gradient;
 use deepmorph::check::density_gradient;
 use deepmorph::check::regularizer_gradient;
+use deepmorph::model::deformation::jacobian;
 use deepmorph::model::deformation::{Jacobian, admissible_each};
 use deepmorph::model::energy::data::data_term;
 use deepmorph::model::energy::density::density;
 use deepmorph::model::energy::path::PathEnergy;
-use deepmorph::model::energy::regularizer::regularizer;
+use deepmorph::model::energy::regularizer::{regularizer, weighted_density};
 use deepmorph::model::warp::BSpline;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
@@ -212,7 +213,12 @@ fn regularizer_gradient_check(backend: Backend) {
         .sum()
         .backward();
     let auto = values(leaf.grad(&grads).unwrap());
-    let hand = values(regularizer_gradient(phi, a, params.lambda, params.mu));
+    let hand = values(regularizer_gradient(
+        phi,
+        a.clone(),
+        params.lambda,
+        params.mu,
+    ));
     check("dR/dphi hand vs autodiff", &hand, &auto, HAND_VS_AUTODIFF);
 
     let fd = finite_differences(&phi_host, central, |copies| {
@@ -222,6 +228,26 @@ fn regularizer_gradient_check(backend: Backend) {
         values(regularizer(phis, a, params.lambda, params.mu))
     });
     check("dR/dphi hand vs FD", &hand, &fd, FINITE_DIFFERENCE);
+
+    // Per pixel, the density as the solver takes it (the fused op on flex) against SPEC §2's
+    // formula composed from tensor ops.
+    let fused = values(weighted_density(
+        phi_of(&s, &phi_host),
+        a.clone(),
+        params.lambda,
+        params.mu,
+    ));
+    let composed = values(a * density(&jacobian(phi_of(&s, &phi_host)), params.lambda, params.mu));
+    check(
+        "a W(J) fused vs composed",
+        &composed,
+        &fused,
+        HAND_VS_AUTODIFF,
+    );
+}
+
+fn phi_of(s: &Setup, host: &[f64]) -> Tensor<4> {
+    s.tensor(host.to_vec(), [1, 2, H, W])
 }
 
 /// Every way of computing the warp (`Gather`) gets the full check: both composed gathers,

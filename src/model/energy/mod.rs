@@ -1,9 +1,10 @@
 //! The terms of the path energy, grouped by what they look at: the deformation
-//! ([`density`], [`regularizer`]), the image ([`anisotropy`]), an image pair ([`data`]), and
+//! ([`density`], [`density_op`], [`regularizer`]), the image ([`anisotropy`]), an image pair ([`data`]), and
 //! the whole path ([`path`]).
 
 pub mod anisotropy;
 pub mod data;
 pub mod density;
+pub mod density_op;
 pub mod path;
 pub mod regularizer;

@@ -1,0 +1,501 @@
+//! The weighted hyperelastic density `a · W(J(φ))` of the regulariser (SPEC §2) and its
+//! gradient in `φ` as one custom Burn op (Burn 0.22's `#[backend_extension]`).
+//!
+//! Composed from tensor ops ([`super::density`], [`crate::model::deformation::jacobian`]) the
+//! density is about twenty passes over the grid (four forward differences with their
+//! `narrow`/`cat`, the determinant, `log`, `exp`, the strain, the fold mask) and autodiff
+//! records each one for the backward: a deformation step of the RGB model spent more time
+//! there than in its warp. Fused, the value is one pass per pixel and the gradient two
+//! (`∂W/∂J` per pixel, then the adjoint of the forward differences).
+//!
+//! - flex: the host kernels below, split over the cores by rows.
+//! - autodiff: the backward is the hand-derived `a ∂W/∂J` chained through the adjoint of the
+//!   forward differences (`crate::check::regularizer_gradient` writes the same formula as
+//!   composed ops; the gradient checks compare the two and finite differences). The weight
+//!   `a` is a constant of every derivative the model takes: a tracked `a` is composed instead
+//!   ([`super::regularizer::weighted_density`] decides).
+//! - ndarray and wgpu compose the density from tensor ops (not served here).
+//!
+//! With the spline's, separable operator's, decision sums' and slope moments' ops, the only
+//! numerical code that names backends.
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::tensor::Tensor;
+
+use crate::model::warp::host::{Real, Shared};
+
+/// The density's primitives (flex only: the other backends compose it).
+#[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
+pub trait DensityOps: Backend {
+    /// `a · W(J(φ))`; shapes as in [`weighted_density`].
+    fn weighted_density(
+        phi: FloatTensor<Self>,
+        a: FloatTensor<Self>,
+        lambda: f64,
+        mu: f64,
+    ) -> FloatTensor<Self>;
+    /// `∂/∂φ Σ g · a · W(J(φ))`, `[N, 2, H, W]`, zero where `φ` folds.
+    fn weighted_density_grad(
+        phi: FloatTensor<Self>,
+        a: FloatTensor<Self>,
+        grad: FloatTensor<Self>,
+        lambda: f64,
+        mu: f64,
+    ) -> FloatTensor<Self>;
+}
+
+/// `a · W(J(φ))` at every pixel by the fused op, differentiable in `φ` (`a` must not be
+/// tracked). Only on a backend that serves it (flex).
+///
+/// # Shapes
+/// - `phi`: `[N, 2, H, W]`; `a`: `[N, H, W]`; output `[N, H, W]`
+pub fn weighted_density(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<3> {
+    Tensor::from_dispatch(Dispatch::weighted_density(
+        phi.into_dispatch(),
+        a.into_dispatch(),
+        lambda,
+        mu,
+    ))
+}
+
+/// Rows per task: enough work per task at 64², every core busy at 512².
+const ROWS_PER_TASK: usize = 8;
+
+/// The Jacobian of SPEC §2 at pixel `(i, j)` from the two planes of `φ`: forward differences,
+/// `J₀₀ = 1` and `J₁₀ = 0` on the last row, `J₀₁ = 0` and `J₁₁ = 1` on the last column.
+#[inline(always)]
+fn jacobian_at<T: Real>(p0: &[T], p1: &[T], i: usize, j: usize, h: usize, w: usize) -> [T; 4] {
+    let at = i * w + j;
+    let (zero, one) = (T::default(), T::from_f64(1.0));
+    let (j00, j10) = if i + 1 < h {
+        (p0[at + w] - p0[at], p1[at + w] - p1[at])
+    } else {
+        (one, zero)
+    };
+    let (j01, j11) = if j + 1 < w {
+        (p0[at + 1] - p0[at], p1[at + 1] - p1[at])
+    } else {
+        (zero, one)
+    };
+    [j00, j01, j10, j11]
+}
+
+/// `W(J)` (SPEC §2), in the order of the composed [`super::density::density`]; `+∞` where
+/// `det J ≤ 0`.
+#[inline(always)]
+fn density_at<T: Real>([j00, j01, j10, j11]: [T; 4], half_lambda: T, mu: T) -> T {
+    let (one, half) = (T::from_f64(1.0), T::from_f64(0.5));
+    let det = j00 * j11 - j01 * j10;
+    if det <= T::default() {
+        return T::from_f64(f64::INFINITY);
+    }
+    let log_det = det.ln();
+    let volume = ((log_det * log_det).exp() - one) * half_lambda;
+    let (d00, d11, shear) = (j00 - one, j11 - one, j01 + j10);
+    let strain = (d00 * d00 + d11 * d11 + shear * shear * half) * mu;
+    volume + strain
+}
+
+/// `∂W/∂J` (SPEC §2): `λ exp((log d)²) log d · d J⁻ᵀ / d + 2μ (sym J − I)`; zero where
+/// `det J ≤ 0` (the composed density's gradient there, which the solver never follows).
+#[inline(always)]
+fn density_grad_at<T: Real>([j00, j01, j10, j11]: [T; 4], lambda: T, mu: T) -> [T; 4] {
+    let (zero, one, two) = (T::default(), T::from_f64(1.0), T::from_f64(2.0));
+    let det = j00 * j11 - j01 * j10;
+    if !(det > zero) {
+        return [zero; 4];
+    }
+    let log_det = det.ln();
+    let factor = (log_det * log_det).exp() * log_det * lambda * (one / det);
+    let shear = (j01 + j10) * mu;
+    [
+        factor * j11 + (j00 - one) * two * mu,
+        shear - factor * j10,
+        shear - factor * j01,
+        factor * j00 + (j11 - one) * two * mu,
+    ]
+}
+
+/// The host kernel of [`weighted_density`] on row-major slices: `phi` `[N, 2, H, W]`, `a`
+/// and `out` `[N, H, W]`.
+pub fn host_density<T: Real>(
+    phi: &[T],
+    a: &[T],
+    [n, h, w]: [usize; 3],
+    lambda: f64,
+    mu: f64,
+    out: &mut [T],
+) {
+    use rayon::prelude::*;
+    let plane = h * w;
+    assert_eq!(phi.len(), n * 2 * plane, "deformation");
+    assert_eq!(a.len(), n * plane, "anisotropy");
+    assert_eq!(out.len(), n * plane, "density");
+    // `λ/2` rounded once, as the composed density's scalar.
+    let (lambda, mu) = (T::from_f64(lambda / 2.0), T::from_f64(mu));
+    let blocks = h.div_ceil(ROWS_PER_TASK);
+    let target = Shared(out.as_mut_ptr());
+    (0..n * blocks).into_par_iter().for_each(|task| {
+        let (b, block) = (task / blocks, task % blocks);
+        let (p0, p1) = (
+            &phi[b * 2 * plane..b * 2 * plane + plane],
+            &phi[b * 2 * plane + plane..(b + 1) * 2 * plane],
+        );
+        for i in block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h) {
+            for j in 0..w {
+                let at = b * plane + i * w + j;
+                let v = a[at] * density_at(jacobian_at(p0, p1, i, j, h, w), lambda, mu);
+                // SAFETY: row i of image b is this task's alone.
+                unsafe { *target.get(at) = v };
+            }
+        }
+    });
+}
+
+/// The host kernel of [`DensityOps::weighted_density_grad`]: `g` and `a` `[N, H, W]`, `out`
+/// `[N, 2, H, W]`.
+pub fn host_density_grad<T: Real>(
+    phi: &[T],
+    a: &[T],
+    g: &[T],
+    [n, h, w]: [usize; 3],
+    lambda: f64,
+    mu: f64,
+    out: &mut [T],
+) {
+    use rayon::prelude::*;
+    let plane = h * w;
+    assert_eq!(phi.len(), n * 2 * plane, "deformation");
+    assert_eq!(a.len(), n * plane, "anisotropy");
+    assert_eq!(g.len(), n * plane, "output gradient");
+    assert_eq!(out.len(), n * 2 * plane, "gradient");
+    let (lambda, mu) = (T::from_f64(lambda), T::from_f64(mu));
+    // `g a ∂W/∂J`, four planes per image: the adjoint below reads each entry twice.
+    let mut dj = vec![T::default(); n * 4 * plane];
+    dj.par_chunks_mut(4 * plane)
+        .enumerate()
+        .for_each(|(b, planes)| {
+            let (p0, p1) = (
+                &phi[b * 2 * plane..b * 2 * plane + plane],
+                &phi[b * 2 * plane + plane..(b + 1) * 2 * plane],
+            );
+            let out = Shared(planes.as_mut_ptr());
+            (0..h.div_ceil(ROWS_PER_TASK))
+                .into_par_iter()
+                .for_each(|block| {
+                    for i in block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h) {
+                        for j in 0..w {
+                            let p = i * w + j;
+                            let weight = g[b * plane + p] * a[b * plane + p];
+                            let d = density_grad_at(jacobian_at(p0, p1, i, j, h, w), lambda, mu);
+                            for (m, v) in d.into_iter().enumerate() {
+                                // SAFETY: row i of each of the image's four planes is this task's
+                                // alone.
+                                unsafe { *out.get(m * plane + p) = weight * v };
+                            }
+                        }
+                    }
+                });
+        });
+    // The adjoint of the forward differences: `J₀₀`, `J₁₀` difference along rows (none on
+    // the last row, where they are constants), `J₀₁`, `J₁₁` along columns.
+    let target = Shared(out.as_mut_ptr());
+    (0..n * h).into_par_iter().for_each(|task| {
+        let (b, i) = (task / h, task % h);
+        let planes = &dj[b * 4 * plane..(b + 1) * 4 * plane];
+        let entry = |m: usize, i: usize, j: usize| planes[m * plane + i * w + j];
+        for (component, (along_rows, along_cols)) in [(0, 1), (2, 3)].into_iter().enumerate() {
+            for j in 0..w {
+                let mut v = T::default();
+                if i + 1 < h {
+                    v = v - entry(along_rows, i, j);
+                }
+                if i >= 1 {
+                    v += entry(along_rows, i - 1, j);
+                }
+                if j + 1 < w {
+                    v = v - entry(along_cols, i, j);
+                }
+                if j >= 1 {
+                    v += entry(along_cols, i, j - 1);
+                }
+                // SAFETY: row i of image b is this task's alone, in both components.
+                unsafe { *target.get((b * 2 + component) * plane + i * w + j) = v };
+            }
+        }
+    });
+}
+
+#[cfg(feature = "flex")]
+mod flex {
+    use burn::backend::Flex;
+    use burn::backend::flex::FlexTensor;
+    use burn::tensor::{DType, TensorData};
+
+    use super::{DensityOps, host_density, host_density_grad};
+    use crate::model::host_view::HostView;
+    use crate::model::warp::host::Real;
+
+    trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
+    impl Kernel for f32 {}
+    impl Kernel for f64 {}
+
+    /// `[N, H, W]` of a deformation `[N, 2, H, W]` and a map that must be `[N, H, W]`.
+    fn dims(phi: &HostView, map: &HostView, what: &str) -> [usize; 3] {
+        let (s, m) = (phi.shape(), map.shape());
+        assert!(
+            s.len() == 4 && s[1] == 2 && m == [s[0], s[2], s[3]],
+            "weighted density: deformation {s:?} and {what} {m:?} do not fit [N, 2, H, W] and \
+             [N, H, W]"
+        );
+        [s[0], s[2], s[3]]
+    }
+
+    fn density_typed<T: Kernel>(phi: &HostView, a: &HostView, lambda: f64, mu: f64) -> TensorData {
+        let d = dims(phi, a, "weight");
+        let mut out = vec![T::default(); d.iter().product()];
+        host_density(phi.values(), a.values(), d, lambda, mu, &mut out);
+        TensorData::new(out, d)
+    }
+
+    fn grad_typed<T: Kernel>(
+        phi: &HostView,
+        a: &HostView,
+        g: &HostView,
+        lambda: f64,
+        mu: f64,
+    ) -> TensorData {
+        let d = dims(phi, a, "weight");
+        assert_eq!(dims(phi, g, "output gradient"), d);
+        let mut out = vec![T::default(); 2 * d.iter().product::<usize>()];
+        host_density_grad(
+            phi.values(),
+            a.values(),
+            g.values(),
+            d,
+            lambda,
+            mu,
+            &mut out,
+        );
+        TensorData::new(out, [d[0], 2, d[1], d[2]])
+    }
+
+    macro_rules! typed {
+        ($dtype:expr, $f:ident ( $($arg:expr),* )) => {
+            match $dtype {
+                DType::F32 => $f::<f32>($($arg),*),
+                DType::F64 => $f::<f64>($($arg),*),
+                other => panic!("the density runs in float32 or float64, not {other:?}"),
+            }
+        };
+    }
+
+    impl DensityOps for Flex {
+        fn weighted_density(phi: FlexTensor, a: FlexTensor, lambda: f64, mu: f64) -> FlexTensor {
+            let (phi, a) = (HostView::new(phi), HostView::new(a));
+            assert_eq!(phi.dtype(), a.dtype(), "weighted density: dtypes differ");
+            FlexTensor::from_data(typed!(phi.dtype(), density_typed(&phi, &a, lambda, mu)))
+        }
+
+        fn weighted_density_grad(
+            phi: FlexTensor,
+            a: FlexTensor,
+            grad: FlexTensor,
+            lambda: f64,
+            mu: f64,
+        ) -> FlexTensor {
+            let (phi, a, grad) = (HostView::new(phi), HostView::new(a), HostView::new(grad));
+            assert!(
+                phi.dtype() == a.dtype() && phi.dtype() == grad.dtype(),
+                "weighted density gradient: dtypes differ"
+            );
+            FlexTensor::from_data(typed!(phi.dtype(), grad_typed(&phi, &a, &grad, lambda, mu)))
+        }
+    }
+}
+
+mod autodiff {
+    use burn::backend::Autodiff;
+    use burn::backend::autodiff::checkpoint::base::Checkpointer;
+    use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+    use burn::backend::autodiff::grads::Gradients;
+    use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+    use burn::backend::tensor::FloatTensor;
+
+    use super::DensityOps;
+
+    #[derive(Debug)]
+    struct Density;
+
+    impl<B: DensityOps> Backward<B, 1> for Density {
+        /// `φ`, `a`, `λ`, `μ`.
+        type State = (FloatTensor<B>, FloatTensor<B>, f64, f64);
+
+        fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
+            let [phi_node] = ops.parents;
+            let (phi, a, lambda, mu) = ops.state;
+            let grad = grads.consume::<B>(&ops.node);
+            if let Some(node) = phi_node {
+                grads.register::<B>(node.id, B::weighted_density_grad(phi, a, grad, lambda, mu));
+            }
+        }
+    }
+
+    impl<B: DensityOps, C: CheckpointStrategy> DensityOps for Autodiff<B, C> {
+        fn weighted_density(
+            phi: FloatTensor<Self>,
+            a: FloatTensor<Self>,
+            lambda: f64,
+            mu: f64,
+        ) -> FloatTensor<Self> {
+            assert!(
+                !a.is_tracked(),
+                "the fused density takes a constant weight (compose it for a tracked one)"
+            );
+            let (phi, phi_node) = phi.into_parts();
+            let (a, _) = a.into_parts();
+            match Density.prepare::<C>([phi_node]).compute_bound().stateful() {
+                OpsKind::Tracked(prep) => {
+                    let out = B::weighted_density(phi.clone(), a.clone(), lambda, mu);
+                    prep.finish((phi, a, lambda, mu), out)
+                }
+                OpsKind::UnTracked(prep) => prep.finish(B::weighted_density(phi, a, lambda, mu)),
+            }
+        }
+
+        fn weighted_density_grad(
+            phi: FloatTensor<Self>,
+            a: FloatTensor<Self>,
+            grad: FloatTensor<Self>,
+            lambda: f64,
+            mu: f64,
+        ) -> FloatTensor<Self> {
+            assert!(
+                !phi.is_tracked() && !a.is_tracked() && !grad.is_tracked(),
+                "the density's gradient kernel is not differentiable"
+            );
+            let (phi, _) = phi.into_parts();
+            let (a, _) = a.into_parts();
+            let (grad, _) = grad.into_parts();
+            FloatTensor::<Self>::new(B::weighted_density_grad(phi, a, grad, lambda, mu))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `Id` plus a smooth displacement of about `amplitude` pixels, `[n, 2, h, w]`.
+    fn deformation(n: usize, h: usize, w: usize, amplitude: f64) -> Vec<f64> {
+        (0..n * 2 * h * w)
+            .map(|at| {
+                let (b, axis, i, j) = (at / (2 * h * w), (at / (h * w)) % 2, (at / w) % h, at % w);
+                let id = if axis == 0 { i } else { j } as f64;
+                let x = (i * 7 + j * 3 + axis * 5 + b * 11) as f64;
+                id + amplitude * (0.37 * x).sin()
+            })
+            .collect()
+    }
+
+    /// SPEC §2 per pixel in float64: forward differences, `W(J)`, `+∞` where `det J ≤ 0`.
+    fn naive(phi: &[f64], a: &[f64], [n, h, w]: [usize; 3], lambda: f64, mu: f64) -> Vec<f64> {
+        let plane = h * w;
+        let mut out = vec![0.0; n * plane];
+        for b in 0..n {
+            let v = |axis: usize, i: usize, j: usize| phi[(b * 2 + axis) * plane + i * w + j];
+            for i in 0..h {
+                for j in 0..w {
+                    let d0 = |axis| {
+                        if i + 1 < h {
+                            Some(v(axis, i + 1, j) - v(axis, i, j))
+                        } else {
+                            None
+                        }
+                    };
+                    let d1 = |axis| {
+                        if j + 1 < w {
+                            Some(v(axis, i, j + 1) - v(axis, i, j))
+                        } else {
+                            None
+                        }
+                    };
+                    let (j00, j10) = (d0(0).unwrap_or(1.0), d0(1).unwrap_or(0.0));
+                    let (j01, j11) = (d1(0).unwrap_or(0.0), d1(1).unwrap_or(1.0));
+                    let det = j00 * j11 - j01 * j10;
+                    let wj = if det <= 0.0 {
+                        f64::INFINITY
+                    } else {
+                        lambda / 2.0 * (det.ln().powi(2).exp() - 1.0)
+                            + mu * ((j00 - 1.0).powi(2)
+                                + (j11 - 1.0).powi(2)
+                                + 0.5 * (j01 + j10).powi(2))
+                    };
+                    out[b * plane + i * w + j] = a[b * plane + i * w + j] * wj;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn the_fused_density_is_specs_formula_per_pixel_and_infinite_where_folded() {
+        let (lambda, mu) = (0.1, 0.025);
+        // Row counts below, at and beyond one task's rows; two images.
+        for dims in [[2, 5, 6], [1, 8, 4], [2, 11, 7]] {
+            let [n, h, w] = dims;
+            let mut phi = deformation(n, h, w, 0.2);
+            // A fold in the last image: one row overtakes the next.
+            let (b, i, j) = (n - 1, h / 2, w / 2);
+            phi[(b * 2) * h * w + i * w + j] += 1.5;
+            let a: Vec<f64> = (0..n * h * w)
+                .map(|p| 0.5 + 0.4 * (p as f64).cos())
+                .collect();
+            let mut got = vec![0.0; n * h * w];
+            host_density(&phi, &a, dims, lambda, mu, &mut got);
+            let want = naive(&phi, &a, dims, lambda, mu);
+            assert!(want.iter().any(|v| v.is_infinite()), "the fold shows");
+            for (k, (g, e)) in got.iter().zip(&want).enumerate() {
+                assert!(
+                    g == e || (g - e).abs() <= 1e-13 * e.abs(),
+                    "{dims:?} at {k}: {g} vs {e}"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn the_fused_gradient_is_the_derivative_of_the_weighted_sum() {
+        let (lambda, mu) = (0.1, 0.025);
+        for dims in [[2, 5, 6], [1, 11, 9]] {
+            let [n, h, w] = dims;
+            let phi = deformation(n, h, w, 0.15);
+            let a: Vec<f64> = (0..n * h * w)
+                .map(|p| 0.5 + 0.4 * (p as f64).cos())
+                .collect();
+            let g: Vec<f64> = (0..n * h * w)
+                .map(|p| 1.0 + 0.3 * (0.7 * p as f64).sin())
+                .collect();
+            let total = |phi: &[f64]| {
+                let mut d = vec![0.0; n * h * w];
+                host_density(phi, &a, dims, lambda, mu, &mut d);
+                d.iter().zip(&g).map(|(d, g)| d * g).sum::<f64>()
+            };
+            let mut got = vec![0.0; n * 2 * h * w];
+            host_density_grad(&phi, &a, &g, dims, lambda, mu, &mut got);
+            let step = 1e-6;
+            for k in 0..phi.len() {
+                let (mut up, mut down) = (phi.clone(), phi.clone());
+                up[k] += step;
+                down[k] -= step;
+                let fd = (total(&up) - total(&down)) / (2.0 * step);
+                assert!(
+                    (got[k] - fd).abs() <= 1e-7 * (1.0 + fd.abs()),
+                    "{dims:?} entry {k}: {} vs finite difference {fd}",
+                    got[k]
+                );
+            }
+        }
+    }
+}
