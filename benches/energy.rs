@@ -5,7 +5,9 @@
 //!   spline op also `warp/BACKEND-composed/...`, the composed tensor ops it replaced (dense
 //!   prefilter matmuls and row gathers), for the comparison;
 //! - `step/BACKEND/C{c}/{n}`: value and autodiff gradient of one step of `E`,
-//!   `R[φ_k, a_k] + D[f_{k−1}, f_k, φ_k]`, w.r.t. `φ_k`, `f_{k−1}` and `f_k`.
+//!   `R[φ_k, a_k] + D[f_{k−1}, f_k, φ_k]`, w.r.t. `φ_k`, `f_{k−1}` and `f_k`;
+//! - `anisotropy/BACKEND/{n}`: `a[u]` of one RGB frame (SPEC §3), as each deformation step
+//!   computes it.
 //!
 //! `C = 3` is the RGB model, `C = 67` the deep model's finest level (relu1_2 + η RGB). The
 //! deformation is a smooth admissible one with displacements of a few pixels, so the gathers
@@ -111,7 +113,21 @@ fn benches(c: &mut Criterion) {
                     0,
                 );
                 let phi = deformation(&grid);
-                let a = energy.anisotropy().compute(image(&grid, 3, 1.0));
+                let rgb = image(&grid, 3, 1.0);
+                let a = energy.anisotropy().compute(rgb.clone());
+                if channels == 3 {
+                    // Once per deformation step of a sweep.
+                    let mut group = c.benchmark_group("anisotropy");
+                    group.sample_size(10).warm_up_time(Duration::from_secs(1));
+                    group.bench_with_input(BenchmarkId::new(backend.name(), n), &n, |b, _| {
+                        b.iter(|| {
+                            let out = energy.anisotropy().compute(rgb.clone());
+                            sync(&autodiff);
+                            out
+                        })
+                    });
+                    group.finish();
+                }
                 let mut group = c.benchmark_group("step");
                 group.sample_size(10).warm_up_time(Duration::from_secs(1));
                 group.bench_with_input(BenchmarkId::new(&id, n), &n, |b, _| {

@@ -126,6 +126,7 @@ macro_rules! simd_dispatch {
         }
     };
 }
+pub(crate) use simd_dispatch;
 
 /// Pixels per task: large enough that a task outweighs rayon's overhead, small enough that
 /// both cores (or sixteen) get an even share at 64².
@@ -746,6 +747,38 @@ fn dot4<T: Real>(line: &[T], index: &[usize; 4], weight: &[T; 4]) -> T {
     (weight[0] * at(0) + weight[1] * at(1)) + (weight[2] * at(2) + weight[3] * at(3))
 }
 
+/// Where a point's four columns are contiguous (the usual case: not within two samples of
+/// the left or right edge), its row offsets `index·W` and first column; else `None` (the
+/// mirror folds a column index back, and the gathers of [`dot4`] are needed).
+#[inline(always)]
+fn contiguous<T>(rows: &Axis<T>, cols: &Axis<T>, w: usize) -> Option<([usize; 4], usize)> {
+    let (r, j0) = (&rows.index, cols.index[0]);
+    // Mirrored neighbours differ by ±1, so a rise of 3 over 3 steps means +1 each time.
+    (cols.index[3] == j0 + 3).then_some(([r[0] * w, r[1] * w, r[2] * w, r[3] * w], j0))
+}
+
+/// `v[k] = Σ_a weight[a] · c[rows[a] + j0 + k]`, `k < 4`: the four columns summed down the four
+/// rows side by side (one vector of four lanes), before the sum across them.
+#[inline(always)]
+fn down_rows<T: Real>(c: &[T], rows: &[usize; 4], j0: usize, weight: &[T; 4]) -> [T; 4] {
+    let mut v = [T::default(); 4];
+    for a in 0..4 {
+        let line: &[T; 4] = c[rows[a] + j0..rows[a] + j0 + 4]
+            .try_into()
+            .expect("four columns");
+        for k in 0..4 {
+            v[k] += weight[a] * line[k];
+        }
+    }
+    v
+}
+
+/// `Σ_k a[k] · b[k]` as two independent pairs.
+#[inline(always)]
+fn sum4<T: Real>(a: &[T; 4], b: &[T; 4]) -> T {
+    (a[0] * b[0] + a[1] * b[1]) + (a[2] * b[2] + a[3] * b[3])
+}
+
 /// `T = B(φ) c`: the spline with coefficients `coeffs` at the clamped points `phi`.
 pub fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
     d.check(coeffs.len(), phi, out.len());
@@ -775,12 +808,17 @@ fn sample_planar<T: Real>(
     let (plane, count) = (d.h * d.w, d.points());
     for (p, rows, cols) in Points::new(phi, &d, b, points) {
         let (wr, wc) = (rows.weight, cols.weight);
+        let inner = contiguous(&rows, &cols, d.w);
         for ch in 0..d.c {
             let c = &coeffs[(b * d.c + ch) * plane..(b * d.c + ch + 1) * plane];
-            // Separably, one row of four at a time: four short independent sums instead
-            // of one chain of sixteen dependent adds.
-            let row = |a: usize| dot4(&c[rows.index[a] * d.w..], &cols.index, &wc);
-            let acc = (wr[0] * row(0) + wr[1] * row(1)) + (wr[2] * row(2) + wr[3] * row(3));
+            let acc = if let Some((ro, j0)) = inner {
+                sum4(&wc, &down_rows(c, &ro, j0, &wr))
+            } else {
+                // Separably, one row of four at a time: four short independent sums instead
+                // of one chain of sixteen dependent adds.
+                let row = |a: usize| dot4(&c[rows.index[a] * d.w..], &cols.index, &wc);
+                (wr[0] * row(0) + wr[1] * row(1)) + (wr[2] * row(2) + wr[3] * row(3))
+            };
             // SAFETY: point p of image b is the calling task's alone.
             unsafe { out.write((b * d.c + ch) * count + p, acc) };
         }
@@ -824,14 +862,20 @@ fn position_grad_planar<T: Real>(
         let (wr, sr) = (rows.weight, rows.slope);
         let (wc, sc) = (cols.weight, cols.slope);
         let (mut g0, mut g1) = (T::default(), T::default());
+        let inner = contiguous(&rows, &cols, d.w);
         for ch in 0..d.c {
             let c = &coeffs[(b * d.c + ch) * plane..(b * d.c + ch + 1) * plane];
             // ∂/∂p₀ = Σ_a β'_a (Σ_b β_b c_ab), ∂/∂p₁ = Σ_a β_a (Σ_b β'_b c_ab).
             let (mut t0, mut t1) = (T::default(), T::default());
-            for a in 0..4 {
-                let line = &c[rows.index[a] * d.w..];
-                t0 += sr[a] * dot4(line, &cols.index, &wc);
-                t1 += wr[a] * dot4(line, &cols.index, &sc);
+            if let Some((ro, j0)) = inner {
+                t0 = sum4(&wc, &down_rows(c, &ro, j0, &sr));
+                t1 = sum4(&sc, &down_rows(c, &ro, j0, &wr));
+            } else {
+                for a in 0..4 {
+                    let line = &c[rows.index[a] * d.w..];
+                    t0 += sr[a] * dot4(line, &cols.index, &wc);
+                    t1 += wr[a] * dot4(line, &cols.index, &sc);
+                }
             }
             let g = grad[(b * d.c + ch) * count + p];
             g0 += g * t0;
@@ -866,6 +910,24 @@ fn scatter<T: Real>(
 ) {
     let (plane, count) = (d.h * d.w, d.points());
     for (p, rows, cols) in Points::new(phi, &d, b, points) {
+        if let Some((ro, j0)) = contiguous(&rows, &cols, d.w) {
+            // Four rows of four contiguous columns: a vector of four per row.
+            let (wr, wc) = (rows.weight, cols.weight);
+            for (i, ch) in channels.clone().enumerate() {
+                let v = grad[(b * d.c + ch) * count + p];
+                let target = &mut target[i * plane..(i + 1) * plane];
+                for a in 0..4 {
+                    let s = wr[a] * v;
+                    let line: &mut [T; 4] = (&mut target[ro[a] + j0..ro[a] + j0 + 4])
+                        .try_into()
+                        .expect("four columns");
+                    for k in 0..4 {
+                        line[k] += s * wc[k];
+                    }
+                }
+            }
+            continue;
+        }
         let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
         for (i, ch) in channels.clone().enumerate() {
             let v = grad[(b * d.c + ch) * count + p];
