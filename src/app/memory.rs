@@ -7,7 +7,7 @@
 //! also the VGG19 weights while they are read and loaded) it grows with the finest level's
 //! pixels (RGB: 400 bytes each; deep: VGG19's activations on the inputs and the warp's
 //! channels-last copies of a 64-channel block, about 1.5 kB) and with
-//! `K · H · W · C`: 51 bytes per step, pixel and channel for RGB, 18.4 for the deep model
+//! `K · H · W · C`: 58 bytes per step, pixel and channel for RGB, 18.4 for the deep model
 //! (whose 64 feature channels go through the same few temporaries). The batched schedule
 //! holds every step's temporaries at once: its `K`-part is 4× (RGB) and 3× (deep) the
 //! sequential one. The peak also creeps up with the number of sweeps (transients meeting by
@@ -18,7 +18,10 @@
 //! schedule, at most 31 % above it for runs of 20 sweeps or more and 35 % for 2-sweep runs
 //! (RGB at 512² costs less per pixel than at 256², which a linear model cannot follow; the
 //! spread between images and sweep counts alone is ±7 %); for the batched schedule at most
-//! 2.4× above.
+//! 2.6× above. The RGB rows at 256² and 512² were re-measured after the 2026-12-02 evening
+//! kernels (faster code holds more freed memory within mimalloc's purge delay: the same
+//! 256² run peaked at 189–199 MB before and 201–240 MB after), and the RGB constant raised
+//! from 51 to 58 bytes to stay above them.
 
 use crate::error::{Error, Result};
 
@@ -55,7 +58,7 @@ struct Coefficients {
 const RGB: Coefficients = Coefficients {
     base: 45e6,
     per_pixel: 400.0,
-    per_step_pixel_channel: 51.0,
+    per_step_pixel_channel: 58.0,
     batched_factor: 4.0,
 };
 
@@ -143,14 +146,14 @@ mod tests {
     /// Measured peaks in MB (README, "Memory"): rows, columns, K, sweeps per level, deep,
     /// batched. `faces` unless the size says otherwise (80 × 128: the motorcycle).
     const MEASURED: [(usize, usize, usize, usize, bool, bool, f64); 28] = [
-        (256, 256, 15, 250, false, false, 220.1), // default RGB morph: 5 levels, --tol 1e-4
+        (256, 256, 15, 250, false, false, 229.0), // default RGB morph: 5 levels, --tol 1e-4
         (64, 64, 15, 2, false, false, 42.5),
         (128, 128, 15, 2, false, false, 77.8),
         (128, 128, 15, 20, false, false, 76.1),
-        (256, 256, 15, 2, false, false, 190.4),
-        (256, 256, 15, 20, false, false, 215.1),
-        (512, 512, 15, 2, false, false, 558.3),
-        (512, 512, 15, 20, false, false, 576.8),
+        (256, 256, 15, 2, false, false, 239.7),
+        (256, 256, 15, 20, false, false, 242.2),
+        (512, 512, 15, 2, false, false, 622.0),
+        (512, 512, 15, 20, false, false, 678.8),
         (256, 256, 4, 2, false, false, 99.7),
         (256, 256, 30, 2, false, false, 324.8),
         (256, 256, 15, 2, false, true, 291.2),
@@ -178,7 +181,7 @@ mod tests {
         for (h, w, k, sweeps, deep, batched, megabytes) in MEASURED {
             let measured = megabytes * 1e6;
             let most = match (batched, sweeps >= 20) {
-                (true, _) => 2.4,
+                (true, _) => 2.6,
                 (false, true) => 1.31,
                 (false, false) => 1.35,
             };

@@ -117,6 +117,20 @@ fn density_grad_at<T: Real>([j00, j01, j10, j11]: [T; 4], lambda: T, mu: T) -> [
     ]
 }
 
+/// The two planes `(φ₀, φ₁)` of deformation `b` in `phi` (`[N, 2, H, W]`, `plane = H·W`).
+#[inline]
+fn planes<T>(phi: &[T], b: usize, plane: usize) -> (&[T], &[T]) {
+    phi[b * 2 * plane..(b + 1) * 2 * plane].split_at(plane)
+}
+
+/// Checks the lengths of the kernels' slices: `phi` `[N, 2, H, W]`, every map `[N, H, W]`.
+fn check_lengths<T>(phi: &[T], maps: &[(&[T], &str)], [n, h, w]: [usize; 3]) {
+    assert_eq!(phi.len(), n * 2 * h * w, "deformation");
+    for (map, what) in maps {
+        assert_eq!(map.len(), n * h * w, "{what}");
+    }
+}
+
 /// The host kernel of [`weighted_density`] on row-major slices: `phi` `[N, 2, H, W]`, `a`
 /// and `out` `[N, H, W]`.
 pub fn host_density<T: Real>(
@@ -129,19 +143,14 @@ pub fn host_density<T: Real>(
 ) {
     use rayon::prelude::*;
     let plane = h * w;
-    assert_eq!(phi.len(), n * 2 * plane, "deformation");
-    assert_eq!(a.len(), n * plane, "anisotropy");
-    assert_eq!(out.len(), n * plane, "density");
+    check_lengths(phi, &[(a, "anisotropy"), (&*out, "density")], [n, h, w]);
     // `λ/2` rounded once, as the composed density's scalar.
     let (lambda, mu) = (T::from_f64(lambda / 2.0), T::from_f64(mu));
     let blocks = h.div_ceil(ROWS_PER_TASK);
     let target = Shared(out.as_mut_ptr());
     (0..n * blocks).into_par_iter().for_each(|task| {
         let (b, block) = (task / blocks, task % blocks);
-        let (p0, p1) = (
-            &phi[b * 2 * plane..b * 2 * plane + plane],
-            &phi[b * 2 * plane + plane..(b + 1) * 2 * plane],
-        );
+        let (p0, p1) = planes(phi, b, plane);
         for i in block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h) {
             for j in 0..w {
                 let at = b * plane + i * w + j;
@@ -166,21 +175,16 @@ pub fn host_density_grad<T: Real>(
 ) {
     use rayon::prelude::*;
     let plane = h * w;
-    assert_eq!(phi.len(), n * 2 * plane, "deformation");
-    assert_eq!(a.len(), n * plane, "anisotropy");
-    assert_eq!(g.len(), n * plane, "output gradient");
+    check_lengths(phi, &[(a, "anisotropy"), (g, "output gradient")], [n, h, w]);
     assert_eq!(out.len(), n * 2 * plane, "gradient");
     let (lambda, mu) = (T::from_f64(lambda), T::from_f64(mu));
     // `g a ∂W/∂J`, four planes per image: the adjoint below reads each entry twice.
     let mut dj = vec![T::default(); n * 4 * plane];
     dj.par_chunks_mut(4 * plane)
         .enumerate()
-        .for_each(|(b, planes)| {
-            let (p0, p1) = (
-                &phi[b * 2 * plane..b * 2 * plane + plane],
-                &phi[b * 2 * plane + plane..(b + 1) * 2 * plane],
-            );
-            let out = Shared(planes.as_mut_ptr());
+        .for_each(|(b, entries)| {
+            let (p0, p1) = planes(phi, b, plane);
+            let out = Shared(entries.as_mut_ptr());
             (0..h.div_ceil(ROWS_PER_TASK))
                 .into_par_iter()
                 .for_each(|block| {

@@ -159,8 +159,12 @@ pub fn apply<T: Real>(x: &[T], rows: &Band<T>, cols: &Band<T>) -> Vec<T> {
     // Both passes as whole-row multiply-adds (a sum over taps along a row is a chain of
     // dependent adds per value, four times slower): along the columns, then along the rows of
     // the transposed planes, transposed back.
-    let along_h = along_first_axis(x, rows, w);
-    let along_w = along_first_axis(&transpose(&along_h, ho, w), cols, ho);
+    // Each intermediate is dropped as soon as the next exists: two planes-sized buffers at a
+    // time, as the two passes without transposes needed (the path energy runs this on all `K`
+    // frames at once).
+    let transposed = transpose(&along_first_axis(x, rows, w), ho, w);
+    let along_w = along_first_axis(&transposed, cols, ho);
+    drop(transposed);
     transpose(&along_w, wo, ho)
 }
 
