@@ -244,6 +244,24 @@ fn regularizer_gradient_check(backend: Backend) {
         &fused,
         HAND_VS_AUTODIFF,
     );
+
+    // The weight differentiated too (the solver never does; a library user may): ∂R/∂a is
+    // W(J(φ)) / (H·W).
+    let a_leaf: Tensor<3> = s.tensor(a_host.clone(), [1, H, W]).require_grad();
+    let grads = regularizer(
+        phi_of(&s, &phi_host),
+        a_leaf.clone(),
+        params.lambda,
+        params.mu,
+    )
+    .sum()
+    .backward();
+    let auto = values(a_leaf.grad(&grads).unwrap());
+    let hand = values(
+        density(&jacobian(phi_of(&s, &phi_host)), params.lambda, params.mu)
+            .mul_scalar(1.0 / (H * W) as f64),
+    );
+    check("dR/da hand vs autodiff", &hand, &auto, HAND_VS_AUTODIFF);
 }
 
 fn phi_of(s: &Setup, host: &[f64]) -> Tensor<4> {

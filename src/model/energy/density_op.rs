@@ -9,11 +9,11 @@
 //! (`∂W/∂J` per pixel, then the adjoint of the forward differences).
 //!
 //! - flex: the host kernels below, split over the cores by rows.
-//! - autodiff: the backward is the hand-derived `a ∂W/∂J` chained through the adjoint of the
-//!   forward differences (`crate::check::regularizer_gradient` writes the same formula as
-//!   composed ops; the gradient checks compare the two and finite differences). The weight
-//!   `a` is a constant of every derivative the model takes: a tracked `a` is composed instead
-//!   ([`super::regularizer::weighted_density`] decides).
+//! - autodiff: the backward in `φ` is the hand-derived `a ∂W/∂J` chained through the adjoint
+//!   of the forward differences (`crate::check::regularizer_gradient` writes the same formula
+//!   as composed ops; the gradient checks compare the two and finite differences); in the
+//!   weight `a` (a constant of every derivative the solver takes, but a library user may
+//!   track it) it is `g · W(J(φ))`, the op itself with `g` as the weight.
 //! - ndarray and wgpu compose the density from tensor ops (not served here).
 //!
 //! With the spline's, separable operator's, decision sums' and slope moments' ops, the only
@@ -45,8 +45,8 @@ pub trait DensityOps: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// `a · W(J(φ))` at every pixel by the fused op, differentiable in `φ` (`a` must not be
-/// tracked). Only on a backend that serves it (flex).
+/// `a · W(J(φ))` at every pixel by the fused op, differentiable in `φ` and `a`. Only on a
+/// backend that serves it (flex).
 ///
 /// # Shapes
 /// - `phi`: `[N, 2, H, W]`; `a`: `[N, H, W]`; output `[N, H, W]`
@@ -332,14 +332,19 @@ mod autodiff {
     #[derive(Debug)]
     struct Density;
 
-    impl<B: DensityOps> Backward<B, 1> for Density {
+    impl<B: DensityOps> Backward<B, 2> for Density {
         /// `φ`, `a`, `λ`, `μ`.
         type State = (FloatTensor<B>, FloatTensor<B>, f64, f64);
 
-        fn backward(self, ops: Ops<Self::State, 1>, grads: &mut Gradients, _: &mut Checkpointer) {
-            let [phi_node] = ops.parents;
+        fn backward(self, ops: Ops<Self::State, 2>, grads: &mut Gradients, _: &mut Checkpointer) {
+            let [phi_node, a_node] = ops.parents;
             let (phi, a, lambda, mu) = ops.state;
             let grad = grads.consume::<B>(&ops.node);
+            if let Some(node) = a_node {
+                // ∂(a W)/∂a · g = g W: the density weighted by g.
+                let g = B::weighted_density(phi.clone(), grad.clone(), lambda, mu);
+                grads.register::<B>(node.id, g);
+            }
             if let Some(node) = phi_node {
                 grads.register::<B>(node.id, B::weighted_density_grad(phi, a, grad, lambda, mu));
             }
@@ -353,13 +358,13 @@ mod autodiff {
             lambda: f64,
             mu: f64,
         ) -> FloatTensor<Self> {
-            assert!(
-                !a.is_tracked(),
-                "the fused density takes a constant weight (compose it for a tracked one)"
-            );
             let (phi, phi_node) = phi.into_parts();
-            let (a, _) = a.into_parts();
-            match Density.prepare::<C>([phi_node]).compute_bound().stateful() {
+            let (a, a_node) = a.into_parts();
+            match Density
+                .prepare::<C>([phi_node, a_node])
+                .compute_bound()
+                .stateful()
+            {
                 OpsKind::Tracked(prep) => {
                     let out = B::weighted_density(phi.clone(), a.clone(), lambda, mu);
                     prep.finish((phi, a, lambda, mu), out)

@@ -24,16 +24,16 @@ pub fn regularizer(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor
 /// `a · W(J(φ))` at every pixel: the summand of [`regularizer`], for sums accumulated
 /// elsewhere (the solver's decisions add it up in float64).
 ///
-/// On a backend with the fused density ([`crate::backend::Capabilities::fused_density`])
-/// and an untracked `a` (the solver's anisotropy always is), one custom op with a
-/// hand-written backward; composed from tensor ops otherwise. Both are SPEC §2's formula.
+/// On a backend with the fused density ([`crate::backend::Capabilities::fused_density`]) one
+/// custom op with a hand-written backward; composed from tensor ops otherwise. Both are SPEC
+/// §2's formula.
 ///
 /// # Shapes
 /// - `phi`: `[N, 2, H, W]`
 /// - `a`: `[N, H, W]`
 /// - output: `[N, H, W]`
 pub fn weighted_density(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<3> {
-    if Capabilities::of(&phi.device()).fused_density && !a.is_require_grad() {
+    if Capabilities::of(&phi.device()).fused_density {
         return density_op::weighted_density(phi, a, lambda, mu);
     }
     a * density(&jacobian(phi), lambda, mu)
