@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use crate::model::warp::host::{Real, has_avx2, simd_dispatch};
+use crate::model::warp::host::{Real, channels_last_into, has_avx2, simd_dispatch};
 
 /// Output values per task: enough that a task outweighs rayon's overhead.
 const VALUES_PER_TASK: usize = 4096;
@@ -115,32 +115,13 @@ fn along_first_axis<T: Real>(x: &[T], band: &Band<T>, m: usize) -> Vec<T> {
     out
 }
 
-/// Side of the square tiles of [`transpose`]: a tile's rows and columns stay in cache.
-const TILE: usize = 32;
-
-/// Every `n × m` plane of `x` transposed, `[planes, m, n]`.
+/// Every `n × m` plane of `x` transposed, `[planes, m, n]`: a plane's `n` rows laid out
+/// channels-last.
 fn transpose<T: Real>(x: &[T], n: usize, m: usize) -> Vec<T> {
-    let plane = n * m;
     let mut out = vec![T::default(); x.len()];
-    // A task writes a strip of TILE output rows (input columns) of one plane.
-    out.par_chunks_mut(plane)
-        .zip(x.par_chunks(plane))
-        .for_each(|(target, src)| {
-            target
-                .par_chunks_mut(TILE * n)
-                .enumerate()
-                .for_each(|(s, strip)| {
-                    let first = s * TILE;
-                    let cols = strip.len() / n;
-                    for i0 in (0..n).step_by(TILE) {
-                        for j in 0..cols {
-                            for i in i0..(i0 + TILE).min(n) {
-                                strip[j * n + i] = src[i * m + first + j];
-                            }
-                        }
-                    }
-                });
-        });
+    out.par_chunks_mut(n * m)
+        .zip(x.par_chunks(n * m))
+        .for_each(|(target, plane)| channels_last_into(plane, n, m, target));
     out
 }
 
@@ -156,12 +137,11 @@ pub fn apply<T: Real>(x: &[T], rows: &Band<T>, cols: &Band<T>) -> Vec<T> {
         0,
         "separable: input is not whole {h} × {w} planes"
     );
-    // Both passes as whole-row multiply-adds (a sum over taps along a row is a chain of
-    // dependent adds per value, four times slower): along the columns, then along the rows of
-    // the transposed planes, transposed back.
-    // Each intermediate is dropped as soon as the next exists: two planes-sized buffers at a
-    // time, as the two passes without transposes needed (the path energy runs this on all `K`
-    // frames at once).
+    // Both passes as whole-row multiply-adds, along the columns, then along the rows of the
+    // transposed planes, transposed back: a sum over taps along a row was a chain of dependent
+    // adds per value (the two anisotropy operators on 3 × 256² took twice as long). Each
+    // intermediate is dropped as soon as the next exists: two plane-sized buffers at a time,
+    // as before the transposes (the path energy runs this on all `K` frames at once).
     let transposed = transpose(&along_first_axis(x, rows, w), ho, w);
     let along_w = along_first_axis(&transposed, cols, ho);
     drop(transposed);

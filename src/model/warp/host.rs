@@ -578,8 +578,19 @@ const TILE: usize = 64;
 
 /// One image's `C` planes of `plane` values, channels-last: `out[p·C + c] = planar[c·plane + p]`.
 fn channels_last<T: Real>(planar: &[T], c: usize, plane: usize) -> Vec<T> {
-    debug_assert_eq!(planar.len(), c * plane);
     let mut out = vec![T::default(); planar.len()];
+    channels_last_into(planar, c, plane, &mut out);
+    out
+}
+
+/// [`channels_last`] into `out` (same length). Also the transpose of a `c × plane` matrix.
+pub(crate) fn channels_last_into<T: Real>(planar: &[T], c: usize, plane: usize, out: &mut [T]) {
+    assert!(
+        planar.len() == c * plane && out.len() == planar.len(),
+        "channels-last: {} values for {c} planes of {plane}, into {}",
+        planar.len(),
+        out.len()
+    );
     out.par_chunks_mut(c * PIXELS_PER_TASK)
         .enumerate()
         .for_each(|(chunk, dst)| {
@@ -594,7 +605,6 @@ fn channels_last<T: Real>(planar: &[T], c: usize, plane: usize) -> Vec<T> {
                 }
             }
         });
-    out
 }
 
 /// `Σ_i a[i] · b[i]` in eight interleaved partial sums (vectorisable, and short dependency
