@@ -501,10 +501,9 @@ impl Ipalm {
     /// `a_k = a[u_k]` for the frames `f_1..f_K` of `state`, `[K, H, W]`.
     pub fn anisotropies(&self, state: &LevelState) -> Tensor<3> {
         let k = state.steps();
-        let frames = Tensor::cat(state.f[1..=k].to_vec(), 0);
         self.energy
             .anisotropy()
-            .compute(self.layout.rgb_part(frames))
+            .compute(self.layout.rgb_parts(&state.f[1..=k]))
     }
 
     /// `E` of `state` with every `a_k` recomputed from its `f_k` (SPEC §10: the energy after

@@ -236,6 +236,28 @@ fn feature_blocks_start_from_the_data_curvature(backend: Backend) {
     assert_eq!(l_f, vec![vec![want, want]; k - 1]);
 }
 
+/// The anisotropies' RGB images, narrowed frame by frame before stacking, are exactly the
+/// RGB part of the stacked frames (the deep layout's η scaling included).
+fn stacked_rgb_parts_equal_the_rgb_part_of_the_stack(backend: Backend) {
+    let device = device(backend, Precision::F32, false);
+    let layout = FeatureLayout::deep(1e-3, 5).unwrap();
+    let frames: Vec<Tensor<4>> = (0..4)
+        .map(|i| {
+            let data: Vec<f32> = (0..8 * 8 * 12)
+                .map(|j| ((i * 97 + j) % 31) as f32 * 1e-3)
+                .collect();
+            Tensor::from_data(
+                burn::tensor::TensorData::new(data, [1, 8, 8, 12]),
+                (&device, burn::tensor::DType::F32),
+            )
+        })
+        .collect();
+    let stacked = layout.rgb_part(Tensor::cat(frames.clone(), 0));
+    let parts = layout.rgb_parts(&frames);
+    assert_eq!(parts.dims(), [4, 3, 8, 12]);
+    assert_eq!(values(parts), values(stacked));
+}
+
 /// A NaN in the optimisation stops the morph with [`Termination::NonFinite`] naming level and
 /// sweep, and the state is the last finite iterate (the one after the sweep before).
 fn a_nan_stops_with_the_last_finite_iterate(backend: Backend) {
@@ -405,6 +427,7 @@ on_each_cpu_backend!(
     an_exhausted_step_keeps_the_estimate_it_started_from,
     float64_accumulation_decides_what_float32_rounding_flips,
     feature_blocks_start_from_the_data_curvature,
+    stacked_rgb_parts_equal_the_rgb_part_of_the_stack,
 );
 
 /// The non-finite path on every backend, wgpu included.
