@@ -78,9 +78,9 @@ impl FeatureLayout {
 
     /// The RGB images of several frames, stacked: [`rgb_part`](Self::rgb_part) of their
     /// concatenation, but each frame is narrowed to its 3 channels before the copy (the deep
-    /// model's frames have 67: stacking them whole to keep 3 was, profiled at 256², K 15,
-    /// 39 % of the solver thread's own time, copying and page-faulting 280 MB per energy
-    /// evaluation).
+    /// model's frames have 67: stacking them whole to keep 3 copied and page-faulted 280 MB
+    /// per energy evaluation at 256², K 15, the largest copy in a profile of the solver
+    /// thread; the peak fell by ~150 MB, the sweep time within noise).
     ///
     /// # Shapes
     /// - `frames`: `[1, C_tot, H, W]` each
