@@ -236,11 +236,9 @@ impl Ipalm {
         kind: SweepKind,
     ) -> Result<SweepReport> {
         let k = state.steps();
-        let mut report = SweepReport {
-            anisotropy: Vec::new(),
-            deformation: Vec::new(),
-            features: Vec::new(),
-        };
+        // The residual norms of the blocks are not kept here: `Ipalm::energy_after` evaluates
+        // every `D_k`.
+        let mut report = SweepReport::empty(k);
         if kind == SweepKind::Joint {
             let a = self.anisotropies(state);
             let (phi_new, steps) = self.deformation_steps(state, a.clone())?;
@@ -312,6 +310,7 @@ impl Ipalm {
                         restarted: false,
                         safeguard_doublings: 0,
                         dropped: search.accepted.is_none(),
+                        residual_norm2: None,
                     },
                     candidate: search.accepted,
                     accepted,
@@ -455,6 +454,7 @@ impl Ipalm {
                 lipschitz: Vec::new(),
                 trials: Vec::new(),
                 dropped: Vec::new(),
+                residual_norm2: None,
             })
             .collect();
         for (b, block) in self.layout.blocks().iter().enumerate() {

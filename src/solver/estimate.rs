@@ -22,7 +22,7 @@ use burn::tensor::{Device, Tensor};
 
 use crate::error::Result;
 use crate::model::feature_model::FeatureModel;
-use crate::model::grid::{Grid, to_host};
+use crate::model::grid::Grid;
 use crate::solver::ipalm::{Ipalm, LevelState, SweepKind};
 use crate::solver::multilevel::{Multilevel, level_endpoints};
 use crate::solver::observer::Phase;
@@ -82,9 +82,9 @@ fn time_sweeps(
     sweeps: usize,
 ) -> Result<f64> {
     let sweep = |state: &mut LevelState| -> Result<()> {
-        ipalm.sweep(state, kind)?;
+        let report = ipalm.sweep(state, kind)?;
         // Reading the energy back synchronises the backend, as the driver does.
-        to_host(ipalm.energy(state).total);
+        ipalm.energy_after(state, Some(&report));
         Ok(())
     };
     sweep(state)?;

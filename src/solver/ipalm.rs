@@ -15,7 +15,7 @@ use burn::tensor::Tensor;
 use crate::error::{Error, Result};
 use crate::model::deformation::{is_admissible, jacobian};
 use crate::model::energy::data::data_term_from_residual;
-use crate::model::energy::path::{EnergyValue, PathEnergy};
+use crate::model::energy::path::{EnergyValue, PathEnergy, StepEnergies};
 use crate::model::energy::regularizer::{regularizer, weighted_density};
 use crate::model::grid::to_host;
 use crate::model::grid::{Accumulation, Grid};
@@ -235,6 +235,10 @@ pub struct DeformationStep {
     pub safeguard_doublings: usize,
     /// Whether the step was dropped (`φ_k` kept): backtracking or safeguard exhausted.
     pub dropped: bool,
+    /// `‖T[f_k, φ] − f_{k−1}‖²` (summed for decisions) at the `φ` the step returned, from the
+    /// safeguard's last local energy; `None` where the step did not evaluate it (safeguard
+    /// off, or dropped before the safeguard ran).
+    pub residual_norm2: Option<f64>,
 }
 
 /// What the feature step of one `k` did, per block.
@@ -246,6 +250,10 @@ pub struct FeatureStep {
     pub trials: Vec<usize>,
     /// Whether each block's search gave up (its values kept).
     pub dropped: Vec<bool>,
+    /// The squared residual norms of the accepted `f_new`, summed over the blocks for
+    /// decisions: `‖T[f_new, φ_k] − f_{k−1}‖²` and `‖T[f_{k+1}, φ_{k+1}] − f_new‖²`; `None` if
+    /// a block kept its values (its residuals at `f_k` were never evaluated).
+    pub residual_norm2: Option<(f64, f64)>,
 }
 
 /// The record of one sweep.
@@ -258,9 +266,40 @@ pub struct SweepReport {
     pub deformation: Vec<DeformationStep>,
     /// Feature steps, `k = 1..K−1`.
     pub features: Vec<FeatureStep>,
+    /// `‖T[f_k, φ_k] − f_{k−1}‖²`, `k = 1..K`, of the state the sweep leaves behind, summed for
+    /// decisions by the last step of the sweep that changed `f_{k−1}`, `f_k` or `φ_k` (or by
+    /// an earlier one if none did); `None` where that step did not evaluate it. What
+    /// [`Ipalm::energy_after`] reuses instead of warping every frame again.
+    pub residual_norm2: Vec<Option<f64>>,
 }
 
 impl SweepReport {
+    /// A report of a sweep of `K` steps with nothing recorded yet.
+    pub(super) fn empty(k: usize) -> Self {
+        Self {
+            anisotropy: Vec::new(),
+            deformation: Vec::new(),
+            features: Vec::new(),
+            residual_norm2: vec![None; k],
+        }
+    }
+
+    /// Records the deformation step of `k`: only `D_k` depends on `φ_k`, and a dropped step
+    /// that did not evaluate it left it as it was.
+    fn record_deformation(&mut self, k: usize, step: DeformationStep) {
+        if !(step.dropped && step.residual_norm2.is_none()) {
+            self.residual_norm2[k - 1] = step.residual_norm2;
+        }
+        self.deformation.push(step);
+    }
+
+    /// Records the feature step of `k`: `f_k` enters `D_k` and `D_{k+1}`.
+    fn record_features(&mut self, k: usize, step: FeatureStep) {
+        self.residual_norm2[k - 1] = step.residual_norm2.map(|(moved, _)| moved);
+        self.residual_norm2[k] = step.residual_norm2.map(|(_, fixed)| fixed);
+        self.features.push(step);
+    }
+
     /// Deformation steps whose inertia the safeguard restarted.
     pub fn restarts(&self) -> usize {
         self.deformation.iter().filter(|s| s.restarted).count()
@@ -303,6 +342,13 @@ struct DeformationProblem<'a> {
     steps: f64,
 }
 
+/// The safeguard's `e(φ)` and the squared residual norm in its data term.
+#[derive(Clone, Copy)]
+struct LocalEnergy {
+    value: f64,
+    residual_norm2: f64,
+}
+
 /// A deformation step linearised around a point `φ̃` (the extrapolated point, or `φ_k` after
 /// a restart): `S(φ̃)` summed for decisions, `g = ∇S(φ̃)`, and the prox of the linearised
 /// data term.
@@ -340,7 +386,7 @@ impl DeformationProblem<'_> {
 
     /// The true local energy `e(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` summed for
     /// decisions (the safeguard's).
-    fn local_energy(&self, phi: Tensor<4>) -> f64 {
+    fn local_energy(&self, phi: Tensor<4>) -> LocalEnergy {
         let warped = self
             .ipalm
             .energy
@@ -350,7 +396,7 @@ impl DeformationProblem<'_> {
     }
 
     /// [`local_energy`](Self::local_energy) with `T[f_k, φ]` already computed.
-    fn local_energy_of(&self, phi: Tensor<4>, warped: Tensor<4>) -> f64 {
+    fn local_energy_of(&self, phi: Tensor<4>, warped: Tensor<4>) -> LocalEnergy {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let residual = warped - self.f_km1.clone();
@@ -359,8 +405,14 @@ impl DeformationProblem<'_> {
                 * 2.0
                 * ipalm.layout.channels() as f64
                 * grid.pixels() as f64);
-        let e = self.smooth_decision(phi) + grid.decision_norm2(residual).mul_scalar(data_scale);
-        to_host(e)[0]
+        let v = read_scalars(
+            grid,
+            vec![self.smooth_decision(phi), grid.decision_norm2(residual)],
+        );
+        LocalEnergy {
+            value: v[0] + v[1] * data_scale,
+            residual_norm2: v[1],
+        }
     }
 
     /// Linearises the step around `point` (SPEC §6 step 2).
@@ -516,6 +568,50 @@ impl Ipalm {
         )
     }
 
+    /// `E` of `state` after a sweep by steps, in float64 (SPEC §10: every `a_k` recomputed
+    /// from its `f_k`): the value [`energy`](Self::energy) gives up to its float32 rounding.
+    ///
+    /// With the `report` of the sweep that left `state`, each `D_k` the sweep already
+    /// evaluated at the final iterate ([`SweepReport::residual_norm2`]: every one in a
+    /// sequential sweep without a dropped block or a deformation step the safeguard did not
+    /// check) is taken from it instead of warping `f_k` again: in the deep model those warps
+    /// of every channel were a quarter of a sweep's time at 256². The rest, and all of them
+    /// without a report, are evaluated here.
+    pub fn energy_after(&self, state: &LevelState, report: Option<&SweepReport>) -> StepEnergies {
+        let k = state.steps();
+        let grid = &self.grid;
+        let p = self.energy.params();
+        let known = report.map_or_else(|| vec![None; k], |r| r.residual_norm2.clone());
+        let missing: Vec<usize> = (0..k).filter(|&i| known[i].is_none()).collect();
+        let mut parts = vec![grid.decision_sum_each(weighted_density(
+            state.deformations(),
+            self.anisotropies(state),
+            p.lambda,
+            p.mu,
+        ))];
+        if !missing.is_empty() {
+            parts.extend(
+                self.energy
+                    .residual_norms(grid, &state.f, &state.phi, &missing),
+            );
+        }
+        let v = read_scalars(grid, parts);
+        let pixels = grid.pixels() as f64;
+        let mut evaluated = v[k..].iter();
+        let data_scale = 1.0 / (2.0 * self.layout.channels() as f64 * pixels);
+        StepEnergies {
+            regularizer: v[..k].iter().map(|r| r / pixels).collect(),
+            data: known
+                .iter()
+                .map(|n| {
+                    n.unwrap_or_else(|| *evaluated.next().expect("one value per missing D_k"))
+                        * data_scale
+                })
+                .collect(),
+            delta: p.delta,
+        }
+    }
+
     /// One sweep over `k = 1..K` (SPEC §6), updating `state` in place.
     ///
     /// # Errors
@@ -528,11 +624,7 @@ impl Ipalm {
             return self.sweep_batched(state, kind);
         }
         let k_steps = state.steps();
-        let mut report = SweepReport {
-            anisotropy: Vec::new(),
-            deformation: Vec::new(),
-            features: Vec::new(),
-        };
+        let mut report = SweepReport::empty(k_steps);
         // What the feature step of k computed that the deformation step of k + 1 needs.
         let mut carried: Option<NextWarp> = None;
         for k in 1..=k_steps {
@@ -547,14 +639,14 @@ impl Ipalm {
                 // the restarted step, not the rejected direction (SPEC §6).
                 state.phi_prev[k - 1] = std::mem::replace(&mut state.phi[k - 1], phi_new);
                 report.anisotropy.push(a);
-                report.deformation.push(step);
+                report.record_deformation(k, step);
             }
             if k < k_steps {
                 let (f_new, step, next) = self.feature_step(state, k)?;
                 carried = Some(next);
                 state.l_f[k - 1] = step.lipschitz.clone();
                 state.f_prev[k] = std::mem::replace(&mut state.f[k], f_new);
-                report.features.push(step);
+                report.record_features(k, step);
             }
         }
         Ok(report)
@@ -592,11 +684,16 @@ impl Ipalm {
             restarted: false,
             safeguard_doublings: 0,
             dropped: false,
+            residual_norm2: None,
         };
-        let dropped = |mut step: DeformationStep| -> Result<(Tensor<4>, DeformationStep)> {
+        let mut current: Option<LocalEnergy> = None;
+        let dropped = |mut step: DeformationStep,
+                       current: Option<LocalEnergy>|
+         -> Result<(Tensor<4>, DeformationStep)> {
             // SPEC §6, *Giving up*: keep φ_k and the L this step started from.
             step.dropped = true;
             step.lipschitz = stored;
+            step.residual_norm2 = current.map(|e| e.residual_norm2);
             Ok((phi.clone(), step))
         };
 
@@ -612,18 +709,19 @@ impl Ipalm {
         step.trials += search.trials;
         step.inadmissible_trials += search.inadmissible;
         let Some(mut phi_new) = search.accepted.take() else {
-            return dropped(step);
+            return dropped(step, current);
         };
         let mut accepted_l = search.lipschitz;
 
         if self.config.safeguard {
-            let current = match current_warp {
+            let at_phi = match current_warp {
                 Some(warped) => problem.local_energy_of(phi.clone(), warped),
                 None => problem.local_energy(phi.clone()),
             };
-            let tolerance = self.slack() * current.abs();
+            current = Some(at_phi);
+            let tolerance = self.slack() * at_phi.value.abs();
             // Written so that a NaN energy counts as a rise.
-            let rises = |e: f64| !(e <= current + tolerance);
+            let rises = |e: LocalEnergy| !(e.value <= at_phi.value + tolerance);
             let mut energy = problem.local_energy(phi_new.clone());
             if rises(energy) && extrapolated.is_some() {
                 // Restart the inertia: as L grows the prox tends to φ̃, which for the
@@ -634,7 +732,7 @@ impl Ipalm {
                 step.trials += search.trials;
                 step.inadmissible_trials += search.inadmissible;
                 let Some(restarted) = search.accepted.take() else {
-                    return dropped(step);
+                    return dropped(step, current);
                 };
                 phi_new = restarted;
                 accepted_l = search.lipschitz;
@@ -643,13 +741,14 @@ impl Ipalm {
             let mut l = accepted_l;
             while rises(energy) {
                 if step.safeguard_doublings == self.config.safeguard_max {
-                    return dropped(step);
+                    return dropped(step, current);
                 }
                 step.safeguard_doublings += 1;
                 l *= 2.0;
                 phi_new = lin.candidate(l);
                 energy = problem.local_energy(phi_new.clone());
             }
+            step.residual_norm2 = Some(energy.residual_norm2);
         }
         // The doublings answered a linearisation that misled this step, not the curvature
         // of S: the next sweep starts from the L the backtracking accepted.
@@ -685,6 +784,7 @@ impl Ipalm {
             lipschitz: Vec::new(),
             trials: Vec::new(),
             dropped: Vec::new(),
+            residual_norm2: Some((0.0, 0.0)),
         };
         for (b, block) in self.layout.blocks().iter().enumerate() {
             let (start, len) = (block.channels.start, block.channels.len());
@@ -717,10 +817,20 @@ impl Ipalm {
             }
             let bt = self.config.backtracking;
             let slack = self.slack();
+            // The residual norms of the last trial: the accepted one's once the search ends.
+            let mut norms = (f64::NAN, f64::NAN);
             let search = bt.search(state.l_f[k - 1][b], |l| {
                 let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
-                let q_new = problem.decision(&problem.residuals(candidate.clone()));
-                let q_new = read_scalars(&self.grid, vec![q_new])[0];
+                let (moved, fixed) = problem.residuals(candidate.clone());
+                let v = read_scalars(
+                    &self.grid,
+                    vec![
+                        self.grid.decision_norm2(moved),
+                        self.grid.decision_norm2(fixed),
+                    ],
+                );
+                norms = (v[0], v[1]);
+                let q_new = problem.decision_of(norms);
                 // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
                 Ok(
                     if bt.accepts(
@@ -738,6 +848,10 @@ impl Ipalm {
                 )
             })?;
             step.dropped.push(search.accepted.is_none());
+            step.residual_norm2 = match (step.residual_norm2, &search.accepted) {
+                (Some((moved, fixed)), Some(_)) => Some((moved + norms.0, fixed + norms.1)),
+                _ => None,
+            };
             // A block whose search gave up keeps its current values.
             blocks.push(
                 search
@@ -794,9 +908,20 @@ impl FeatureProblem<'_> {
     /// `Q` from its residuals, summed for decisions.
     fn decision(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Tensor<1> {
         let grid = &self.ipalm.grid;
+        (grid.decision_norm2(moved.clone()) + grid.decision_norm2(fixed.clone()))
+            .mul_scalar(self.decision_scale())
+    }
+
+    /// `Q` from the squared norms of its residuals, as [`decision`](Self::decision) adds them.
+    fn decision_of(&self, (moved, fixed): (f64, f64)) -> f64 {
+        (moved + fixed) * self.decision_scale()
+    }
+
+    /// `(K/δ) / (2·C_tot·H·W)`: `Q` per unit of squared residual norm.
+    fn decision_scale(&self) -> f64 {
+        let grid = &self.ipalm.grid;
         let c_tot = self.ipalm.layout.channels() as f64;
         let delta = self.ipalm.energy.params().delta;
-        let scale = self.steps / (delta * 2.0 * c_tot * grid.pixels() as f64);
-        (grid.decision_norm2(moved.clone()) + grid.decision_norm2(fixed.clone())).mul_scalar(scale)
+        self.steps / (delta * 2.0 * c_tot * grid.pixels() as f64)
     }
 }

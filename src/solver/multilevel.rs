@@ -10,7 +10,7 @@ use burn::tensor::{Device, Tensor};
 
 use crate::error::{Error, Result};
 use crate::model::feature_model::FeatureModel;
-use crate::model::grid::{Grid, to_host};
+use crate::model::grid::Grid;
 use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
 use crate::model::resample::{Resize, prolongate_deformation};
@@ -403,31 +403,18 @@ impl Multilevel {
             };
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
 
-            let evaluate = |state: &LevelState| -> std::result::Result<[f64; 3], String> {
-                let value = ipalm.energy(state);
-                let parts = to_host(Tensor::cat(
-                    vec![
-                        value.total,
-                        value.regularizer.clone().mul_scalar(k as f64),
-                        value.data.clone().mul_scalar(k as f64 / cfg.params.delta),
-                    ],
-                    0,
-                ));
-                let (total, per_step) = (parts[0], &parts[1..]);
+            // The energy after a sweep, reusing the data terms the sweep evaluated (its report).
+            let evaluate = |state: &LevelState,
+                            report: Option<&SweepReport>|
+             -> std::result::Result<[f64; 3], String> {
+                let energy = ipalm.energy_after(state, report);
+                let total = energy.total();
                 if total.is_finite() {
-                    let sum = |v: &[f64]| v.iter().sum::<f64>();
-                    return Ok([total, sum(&per_step[..k]), sum(&per_step[k..])]);
+                    return Ok([total, energy.regularizer_part(), energy.data_part()]);
                 }
-                let bad = (0..k)
-                    .find(|&i| !(per_step[i].is_finite() && per_step[k + i].is_finite()))
-                    .map_or(String::new(), |i| {
-                        format!(
-                            " (step k = {}: K·R = {}, (K/δ)·D = {})",
-                            i + 1,
-                            per_step[i],
-                            per_step[k + i]
-                        )
-                    });
+                let bad = energy.first_nonfinite().map_or(String::new(), |(k, r, d)| {
+                    format!(" (step k = {k}: K·R = {r}, (K/δ)·D = {d})")
+                });
                 Err(format!("the path energy is {total}{bad}"))
             };
             let mut report_sweep = |phase: Phase,
@@ -475,6 +462,7 @@ impl Multilevel {
             };
             let mut level_stop = LevelStop::Sweeps;
             let mut joint_sweeps = resumed_sweeps;
+            let mut last_numbers: Option<[f64; 3]> = None;
             'phases: for (phase, sweeps, kind) in phases {
                 if sweeps == 0 && phase == Phase::Features {
                     continue;
@@ -485,7 +473,14 @@ impl Multilevel {
                 } else {
                     0
                 };
-                match (start == 0).then(|| evaluate(&state)) {
+                // The joint phase starts where the feature-only sweeps left the state: their
+                // last energy is its sweep 0.
+                let initial = (start == 0).then(|| {
+                    last_numbers
+                        .take()
+                        .map_or_else(|| evaluate(&state, None), Ok)
+                });
+                match initial {
                     None => {}
                     Some(Ok(numbers)) => {
                         if phase == Phase::Joint {
@@ -512,11 +507,16 @@ impl Multilevel {
                         Err(Error::NonFinite { what }) => Err(what),
                         Err(other) => return Err(other),
                     };
-                    if self.inject_nonfinite == Some((level, sweep)) {
+                    let injected = self.inject_nonfinite == Some((level, sweep));
+                    if injected {
                         state.f[1] = state.f[1].clone().mul_scalar(f64::NAN);
                     }
-                    match outcome.and_then(|report| evaluate(&state).map(|n| (report, n))) {
+                    match outcome.and_then(|report| {
+                        // A fault injected after the sweep is not in its report.
+                        evaluate(&state, (!injected).then_some(&report)).map(|n| (report, n))
+                    }) {
                         Ok((report, numbers)) => {
+                            last_numbers = Some(numbers);
                             let mut stop = None;
                             if phase == Phase::Joint {
                                 joint_sweeps = sweep;

@@ -420,7 +420,95 @@ fn decision_sums_are_float64_sums_of_the_float32_values(backend: Backend) {
     }
 }
 
+/// The energy after a sweep reuses the squared residuals the sweep's last steps evaluated
+/// (SPEC §10's value, `a_k` from the new frames): equal to evaluating every `D_k` again, which
+/// is a float64 sum of the float32 residuals, and to the float32 path energy up to its rounding.
+/// The batched schedule records none, so everything is evaluated.
+fn the_energy_after_a_sweep_reuses_the_sweeps_residuals(backend: Backend) {
+    use deepmorph::solver::ipalm::Schedule;
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let eta = 1e-3;
+    let layout = FeatureLayout::deep(eta, 4).unwrap();
+    // η-scaled RGB and four feature channels that move with the blob.
+    let frame = |cy: f64, cx: f64| {
+        let features: Vec<Tensor<4>> = (0..4)
+            .map(|c| blob(&grid, cy + c as f64 * 0.5, cx).narrow(1, c % 3, 1))
+            .collect();
+        Tensor::cat(
+            vec![
+                blob(&grid, cy, cx).mul_scalar(eta),
+                Tensor::cat(features, 1),
+            ],
+            1,
+        )
+    };
+    let params = EnergyParams::deep();
+    let bspline = BSpline::new(&grid);
+    let host_data_terms = |state: &LevelState| -> Vec<f64> {
+        (0..state.steps())
+            .map(|i| {
+                let warped = bspline.interpolate(
+                    bspline.coefficients(state.f[i + 1].clone()),
+                    state.phi[i].clone(),
+                );
+                let residual = values(warped)
+                    .iter()
+                    .zip(values(state.f[i].clone()))
+                    // The residual as the tensor holds it: a float32 difference.
+                    .map(|(w, f)| f64::from(*w as f32 - f as f32).powi(2))
+                    .sum::<f64>();
+                residual / (2.0 * 7.0 * 256.0)
+            })
+            .collect()
+    };
+    for schedule in [Schedule::Sequential, Schedule::Batched] {
+        let config = IpalmConfig {
+            schedule,
+            ..IpalmConfig::default()
+        };
+        let ipalm = Ipalm::new(&grid, params, layout.clone(), config).unwrap();
+        let mut state = LevelState::initial(
+            &grid,
+            &layout,
+            frame(7.0, 6.0),
+            frame(8.0, 9.0),
+            3,
+            params.delta,
+        )
+        .unwrap();
+        let kinds = [SweepKind::FeaturesOnly, SweepKind::Joint, SweepKind::Joint];
+        for (sweep, kind) in kinds.into_iter().enumerate() {
+            let report = ipalm.sweep(&mut state, kind).unwrap();
+            let what = format!("{backend:?} {schedule:?} sweep {sweep} ({kind:?})");
+            let recorded = report.residual_norm2.iter().filter(|n| n.is_some()).count();
+            match schedule {
+                Schedule::Sequential => assert_eq!(recorded, 3, "{what}"),
+                Schedule::Batched => assert_eq!(recorded, 0, "{what}"),
+            }
+            let reused = ipalm.energy_after(&state, Some(&report));
+            let evaluated = ipalm.energy_after(&state, None);
+            assert_eq!(reused.regularizer, evaluated.regularizer, "{what}");
+            let host = host_data_terms(&state);
+            for k in 0..3 {
+                let (r, e, h) = (reused.data[k], evaluated.data[k], host[k]);
+                // The steps warp each channel block on its own: float32 rounding apart.
+                assert!((r - e).abs() <= 1e-6 * e, "{what} D_{}: {r} vs {e}", k + 1);
+                // Both float64 sums of the same float32 residuals.
+                assert!((e - h).abs() <= 1e-12 * h, "{what} D_{}: {e} vs {h}", k + 1);
+            }
+            let float32 = values(ipalm.energy(&state).total)[0];
+            let total = reused.total();
+            assert!(
+                (total - float32).abs() <= 1e-5 * total,
+                "{what}: E {total} vs {float32} in float32"
+            );
+        }
+    }
+}
+
 on_each_cpu_backend!(
+    the_energy_after_a_sweep_reuses_the_sweeps_residuals,
     decision_sums_are_float64_sums_of_the_float32_values,
     a_level_stops_when_the_energy_stalls,
     an_overshooting_extrapolation_is_restarted_not_dropped,

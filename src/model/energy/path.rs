@@ -38,6 +38,54 @@ pub struct EnergyValue {
     pub data: Tensor<1>,
 }
 
+/// `E` by steps on the host, in float64: `R_k` and `D_k` summed for decisions (SPEC §6), what
+/// a level's driver logs and tests for convergence.
+#[derive(Clone, Debug, PartialEq)]
+pub struct StepEnergies {
+    /// `R_k = R[φ_k, a_k]`, `k = 1..K`.
+    pub regularizer: Vec<f64>,
+    /// `D_k = D[f_{k−1}, f_k, φ_k]`, `k = 1..K`.
+    pub data: Vec<f64>,
+    /// `δ`.
+    pub delta: f64,
+}
+
+impl StepEnergies {
+    /// `K`.
+    pub fn steps(&self) -> usize {
+        self.regularizer.len()
+    }
+
+    /// `E = K Σ_k (R_k + D_k / δ)`.
+    pub fn total(&self) -> f64 {
+        self.regularizer_part() + self.data_part()
+    }
+
+    /// `K Σ_k R_k`.
+    pub fn regularizer_part(&self) -> f64 {
+        self.steps() as f64 * self.regularizer.iter().sum::<f64>()
+    }
+
+    /// `(K/δ) Σ_k D_k`.
+    pub fn data_part(&self) -> f64 {
+        self.steps() as f64 / self.delta * self.data.iter().sum::<f64>()
+    }
+
+    /// The first step `k` (1-based) whose `K·R_k` or `(K/δ)·D_k` is not finite, with both.
+    pub fn first_nonfinite(&self) -> Option<(usize, f64, f64)> {
+        let k = self.steps() as f64;
+        (0..self.steps())
+            .map(|i| {
+                (
+                    i + 1,
+                    k * self.regularizer[i],
+                    k / self.delta * self.data[i],
+                )
+            })
+            .find(|(_, r, d)| !(r.is_finite() && d.is_finite()))
+    }
+}
+
 impl PathEnergy {
     /// The path energy on `grid` for features with `channels` channels.
     ///
@@ -91,6 +139,53 @@ impl PathEnergy {
             regularizer,
             data,
         }
+    }
+
+    /// `‖T[f_k, φ_k] − f_{k−1}‖²` summed for decisions (SPEC §6) for the steps `k = i + 1`,
+    /// `i ∈ which` (ascending), in that order; runs of consecutive steps are batched in chunks
+    /// of at most [`CHUNK_ELEMENTS`] values.
+    ///
+    /// # Shapes
+    /// - `f`: `K + 1` tensors `[1, C, H, W]`, `phi`: `K` tensors `[1, 2, H, W]`
+    /// - output: `which.len()` tensors `[1]`
+    pub fn residual_norms(
+        &self,
+        grid: &Grid,
+        f: &[Tensor<4>],
+        phi: &[Tensor<4>],
+        which: &[usize],
+    ) -> Vec<Tensor<1>> {
+        let [_, c, h, w] = f[0].dims();
+        let chunk = (CHUNK_ELEMENTS / (c * h * w)).max(1);
+        let mut runs: Vec<Vec<usize>> = Vec::new();
+        for &i in which {
+            match runs.last_mut() {
+                Some(run) if run.len() < chunk && run.last() == Some(&(i - 1)) => run.push(i),
+                _ => runs.push(vec![i]),
+            }
+        }
+        let stack = |parts: &[Tensor<4>], run: &[usize], offset: usize| -> Tensor<4> {
+            match run {
+                [i] => parts[i + offset].clone(),
+                _ => Tensor::cat(
+                    parts[run[0] + offset..=run[run.len() - 1] + offset].to_vec(),
+                    0,
+                ),
+            }
+        };
+        runs.iter()
+            .flat_map(|run| {
+                let warped = self.bspline.interpolate(
+                    self.bspline.coefficients(stack(f, run, 1)),
+                    stack(phi, run, 0),
+                );
+                let residual = warped - stack(f, run, 0);
+                // Item by item: the decision norm squares in float64 as the steps' do.
+                (0..run.len())
+                    .map(|i| grid.decision_norm2(residual.clone().narrow(0, i, 1)))
+                    .collect::<Vec<_>>()
+            })
+            .collect()
     }
 
     /// `D_k` for `k = 1..K`, batched over frames in chunks of at most [`CHUNK_ELEMENTS`].
