@@ -236,8 +236,6 @@ impl Ipalm {
         kind: SweepKind,
     ) -> Result<SweepReport> {
         let k = state.steps();
-        // The residual norms of the blocks are not kept here: `Ipalm::energy_after` evaluates
-        // every `D_k`.
         let mut report = SweepReport::empty(k);
         if kind == SweepKind::Joint {
             let a = self.anisotropies(state);
@@ -256,7 +254,10 @@ impl Ipalm {
                 continue;
             }
             let (frames, steps) = self.feature_steps(state, &ks)?;
+            // Recorded in the order the passes run: every `D_k` next to an even frame is final
+            // only after the even pass, `D_1` and (for even `K`) `D_K` after the odd one.
             for ((&j, f), step) in ks.iter().zip(frames).zip(steps) {
+                report.record_residuals(j, step.residual_norm2);
                 state.l_f[j - 1] = step.lipschitz.clone();
                 state.f_prev[j] = std::mem::replace(&mut state.f[j], f);
                 features[j - 1] = Some(step);
@@ -454,7 +455,7 @@ impl Ipalm {
                 lipschitz: Vec::new(),
                 trials: Vec::new(),
                 dropped: Vec::new(),
-                residual_norm2: None,
+                residual_norm2: Some((0.0, 0.0)),
             })
             .collect();
         for (b, block) in self.layout.blocks().iter().enumerate() {
@@ -470,6 +471,8 @@ impl Ipalm {
                     + grid.decision_sum_each(fixed.clone().square()))
                 .mul_scalar(scale)
             };
+            // Each item's residual norms of its last trial: the accepted one's once decided.
+            let mut norms = vec![(f64::NAN, f64::NAN); n];
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
             let leaf = x_tilde.clone().require_grad();
             let r = residuals(leaf.clone());
@@ -503,14 +506,24 @@ impl Ipalm {
                 let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
                 let inverse = per_item(l.iter().map(|l| 1.0 / l).collect());
                 let candidates = x_tilde.clone() - grad.clone() * inverse;
-                let q_new = read_scalars(grid, vec![decision(&residuals(candidates.clone()))]);
+                let (moved, fixed) = residuals(candidates.clone());
+                let v = read_scalars(
+                    grid,
+                    vec![
+                        grid.decision_sum_each(moved.square()),
+                        grid.decision_sum_each(fixed.square()),
+                    ],
+                );
                 for i in 0..n {
                     let Some(l) = trial[i] else {
                         continue;
                     };
+                    norms[i] = (v[i], v[n + i]);
+                    // As `decision` adds them.
+                    let q_new = (v[i] + v[n + i]) * scale;
                     let (g2, q0) = (norm2[i], q_tilde[i]);
                     // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
-                    let outcome = if bt.accepts(q_new[i], q0, -g2 / l, g2 / (l * l), l, slack) {
+                    let outcome = if bt.accepts(q_new, q0, -g2 / l, g2 / (l * l), l, slack) {
                         Trial::Accepted(item(&candidates, i))
                     } else {
                         Trial::Rejected
@@ -525,6 +538,12 @@ impl Ipalm {
                 records[i].dropped.push(search.accepted.is_none());
                 records[i].lipschitz.push(search.lipschitz);
                 records[i].trials.push(search.trials);
+                records[i].residual_norm2 = match (records[i].residual_norm2, &search.accepted) {
+                    (Some((moved, fixed)), Some(_)) => {
+                        Some((moved + norms[i].0, fixed + norms[i].1))
+                    }
+                    _ => None,
+                };
                 values.push(search.accepted.unwrap_or_else(|| item(&current, i)));
             }
             blocks.push(Tensor::cat(values, 0));

@@ -295,9 +295,15 @@ impl SweepReport {
 
     /// Records the feature step of `k`: `f_k` enters `D_k` and `D_{k+1}`.
     fn record_features(&mut self, k: usize, step: FeatureStep) {
-        self.residual_norm2[k - 1] = step.residual_norm2.map(|(moved, _)| moved);
-        self.residual_norm2[k] = step.residual_norm2.map(|(_, fixed)| fixed);
+        self.record_residuals(k, step.residual_norm2);
         self.features.push(step);
+    }
+
+    /// Records the squared residual norms a feature step of `k` left: those of `D_k` and
+    /// `D_{k+1}`, or neither.
+    pub(super) fn record_residuals(&mut self, k: usize, norms: Option<(f64, f64)>) {
+        self.residual_norm2[k - 1] = norms.map(|(moved, _)| moved);
+        self.residual_norm2[k] = norms.map(|(_, fixed)| fixed);
     }
 
     /// Deformation steps whose inertia the safeguard restarted.
@@ -559,7 +565,9 @@ impl Ipalm {
     }
 
     /// `E` of `state` with every `a_k` recomputed from its `f_k` (SPEC §10: the energy after
-    /// a sweep).
+    /// a sweep), as the float32 tensors of [`PathEnergy::value`]. Their sums are float32 too:
+    /// on a deep 256² path (67 channels) this read 0.23 % below the float64 sum of the same
+    /// residuals; the driver logs [`energy_after`](Self::energy_after).
     pub fn energy(&self, state: &LevelState) -> EnergyValue {
         self.energy.value(
             state.frames(),
