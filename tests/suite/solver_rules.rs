@@ -494,6 +494,14 @@ fn the_energy_after_a_sweep_reuses_the_sweeps_residuals(backend: Backend) {
             assert_eq!(mixed.data[0], reused.data[0], "{what}");
             assert_eq!(mixed.data[1], evaluated.data[1], "{what}");
             assert_eq!(mixed.data[2], reused.data[2], "{what}");
+            // Two missing values apart: evaluated one at a time, not as one batch of frames.
+            let mut apart = report.clone();
+            apart.residual_norm2[0] = None;
+            apart.residual_norm2[2] = None;
+            let apart = ipalm.energy_after(&state, Some(&apart));
+            assert_eq!(apart.data[0], evaluated.data[0], "{what}");
+            assert_eq!(apart.data[1], reused.data[1], "{what}");
+            assert_eq!(apart.data[2], evaluated.data[2], "{what}");
             let host = host_data_terms(&state);
             for k in 0..3 {
                 let (r, e, h) = (reused.data[k], evaluated.data[k], host[k]);

@@ -160,7 +160,9 @@ impl PathEnergy {
         let mut runs: Vec<Vec<usize>> = Vec::new();
         for &i in which {
             match runs.last_mut() {
-                Some(run) if run.len() < chunk && run.last() == Some(&(i - 1)) => run.push(i),
+                Some(run) if run.len() < chunk && run.last().map(|l| l + 1) == Some(i) => {
+                    run.push(i)
+                }
                 _ => runs.push(vec![i]),
             }
         }
