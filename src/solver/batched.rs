@@ -466,10 +466,13 @@ impl Ipalm {
                 let warped = sampler.sample(bspline.coefficients(x.clone()));
                 (warped - prev.clone(), next.clone() - x)
             };
-            let decision = |(moved, fixed): &(Tensor<4>, Tensor<4>)| {
-                (grid.decision_sum_each(moved.clone().square())
-                    + grid.decision_sum_each(fixed.clone().square()))
-                .mul_scalar(scale)
+            // The squared norms of each item's two residuals, `[n]` each, summed for decisions;
+            // `Q` is their sum times `scale`, taken on the host.
+            let norms_each = |(moved, fixed): &(Tensor<4>, Tensor<4>)| {
+                vec![
+                    grid.decision_sum_each(moved.clone().square()),
+                    grid.decision_sum_each(fixed.clone().square()),
+                ]
             };
             // Each item's residual norms of its last trial: the accepted one's once decided.
             let mut norms = vec![(f64::NAN, f64::NAN); n];
@@ -483,11 +486,11 @@ impl Ipalm {
             .mul_scalar(steps / delta);
             let grads = q.backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let v = read_scalars(
-                grid,
-                vec![decision(&r), grid.decision_sum_each(grad.clone().square())],
-            );
-            let (q_tilde, norm2) = (&v[..n], &v[n..]);
+            let mut parts = norms_each(&r);
+            parts.push(grid.decision_sum_each(grad.clone().square()));
+            let v = read_scalars(grid, parts);
+            let q_tilde: Vec<f64> = (0..n).map(|i| (v[i] + v[n + i]) * scale).collect();
+            let norm2 = &v[2 * n..];
             if let Some(i) = (0..n).find(|&i| !(q_tilde[i].is_finite() && norm2[i].is_finite())) {
                 return Err(Error::NonFinite {
                     what: format!(
@@ -506,20 +509,12 @@ impl Ipalm {
                 let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
                 let inverse = per_item(l.iter().map(|l| 1.0 / l).collect());
                 let candidates = x_tilde.clone() - grad.clone() * inverse;
-                let (moved, fixed) = residuals(candidates.clone());
-                let v = read_scalars(
-                    grid,
-                    vec![
-                        grid.decision_sum_each(moved.square()),
-                        grid.decision_sum_each(fixed.square()),
-                    ],
-                );
+                let v = read_scalars(grid, norms_each(&residuals(candidates.clone())));
                 for i in 0..n {
                     let Some(l) = trial[i] else {
                         continue;
                     };
                     norms[i] = (v[i], v[n + i]);
-                    // As `decision` adds them.
                     let q_new = (v[i] + v[n + i]) * scale;
                     let (g2, q0) = (norm2[i], q_tilde[i]);
                     // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².

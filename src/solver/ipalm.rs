@@ -808,14 +808,10 @@ impl Ipalm {
             let residuals = problem.residuals(leaf.clone());
             let grads = problem.differentiable(&residuals).backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let v = read_scalars(
-                &self.grid,
-                vec![
-                    problem.decision(&residuals),
-                    self.grid.decision_norm2(grad.clone()),
-                ],
-            );
-            let (q_tilde, grad_norm2) = (v[0], v[1]);
+            let mut parts = problem.norms(&residuals);
+            parts.push(self.grid.decision_norm2(grad.clone()));
+            let v = read_scalars(&self.grid, parts);
+            let (q_tilde, grad_norm2) = (problem.decision_of((v[0], v[1])), v[2]);
             if !(q_tilde.is_finite() && grad_norm2.is_finite()) {
                 return Err(Error::NonFinite {
                     what: format!(
@@ -829,13 +825,9 @@ impl Ipalm {
             let mut norms = (f64::NAN, f64::NAN);
             let search = bt.search(state.l_f[k - 1][b], |l| {
                 let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
-                let (moved, fixed) = problem.residuals(candidate.clone());
                 let v = read_scalars(
                     &self.grid,
-                    vec![
-                        self.grid.decision_norm2(moved),
-                        self.grid.decision_norm2(fixed),
-                    ],
+                    problem.norms(&problem.residuals(candidate.clone())),
                 );
                 norms = (v[0], v[1]);
                 let q_new = problem.decision_of(norms);
@@ -913,14 +905,17 @@ impl FeatureProblem<'_> {
         .mul_scalar(self.steps / delta)
     }
 
-    /// `Q` from its residuals, summed for decisions.
-    fn decision(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Tensor<1> {
+    /// The squared norms of the two residuals, summed for decisions: read back (with any
+    /// other scalars of the same transfer) and added by [`decision_of`](Self::decision_of).
+    fn norms(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Vec<Tensor<1>> {
         let grid = &self.ipalm.grid;
-        (grid.decision_norm2(moved.clone()) + grid.decision_norm2(fixed.clone()))
-            .mul_scalar(self.decision_scale())
+        vec![
+            grid.decision_norm2(moved.clone()),
+            grid.decision_norm2(fixed.clone()),
+        ]
     }
 
-    /// `Q` from the squared norms of its residuals, as [`decision`](Self::decision) adds them.
+    /// `Q` from the squared norms of its residuals.
     fn decision_of(&self, (moved, fixed): (f64, f64)) -> f64 {
         (moved + fixed) * self.decision_scale()
     }
