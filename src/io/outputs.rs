@@ -415,7 +415,9 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         std::fs::write(dir.join(DEFORMATIONS_HEADER), header).unwrap();
         std::fs::write(dir.join(DEFORMATIONS_DATA), values).unwrap();
-        load_deformations(&dir)
+        let loaded = load_deformations(&dir);
+        std::fs::remove_dir_all(&dir).unwrap();
+        loaded
     }
 
     #[test]
