@@ -34,6 +34,7 @@ use anyhow::{Context, Result, bail, ensure};
 use clap::{Parser, ValueEnum};
 use deepmorph::app::config::{Inputs, MorphConfig, WorkingSize};
 use deepmorph::app::job::MorphJob;
+use deepmorph::app::memory::peak_resident_bytes;
 use deepmorph::eval::folder::MorphFolder;
 use deepmorph::eval::metrics::Metrics;
 use deepmorph::io::animation::VideoFormat;
@@ -386,7 +387,7 @@ fn run_one(spec: &RunSpec, data: &Path, vgg19: &Path, work: &Path) -> Result<()>
         size: [h, w],
         solver_seconds: result.seconds,
         process_seconds: started.elapsed().as_secs_f64(),
-        peak_bytes: peak_resident_bytes()?,
+        peak_bytes: peak_resident_bytes().context("no VmHWM in /proc/self/status")?,
         sweeps: metrics.levels.iter().map(|l| l.sweeps).collect(),
         metrics,
         machine: machine(),
@@ -421,21 +422,6 @@ impl Observer for LevelLog {
             );
         }
     }
-}
-
-/// This process's peak resident memory (`VmHWM` of `/proc/self/status`), bytes.
-fn peak_resident_bytes() -> Result<u64> {
-    let status = std::fs::read_to_string("/proc/self/status")?;
-    let line = status
-        .lines()
-        .find(|l| l.starts_with("VmHWM:"))
-        .context("no VmHWM in /proc/self/status")?;
-    let kib: u64 = line
-        .split_whitespace()
-        .nth(1)
-        .context("VmHWM without a value")?
-        .parse()?;
-    Ok(kib * 1024)
 }
 
 /// The CPU model and the cores this process may use.
@@ -475,9 +461,8 @@ fn utc_now() -> String {
 /// region outlined, and under each the region magnified ×4 (nearest neighbour, so the
 /// pixels of the working size are seen as they are).
 ///
-/// The region is the `ZOOM_REGION²` window (stride 4) where `u_0` and `u_K` differ most:
-/// where a cross-fade and a transport look most different; the same for every model of a
-/// pair at one size.
+/// The region is [`most_structured_window`] of `u_0` and `u_K`: the same for every model of
+/// a pair at one size.
 fn sheet(dir: &Path, steps: usize) -> Result<RgbImage> {
     let digits = if steps >= 100 { 3 } else { 2 };
     let frame = |k: usize| -> Result<RgbImage> {
@@ -491,7 +476,7 @@ fn sheet(dir: &Path, steps: usize) -> Result<RgbImage> {
     if w < ZOOM_REGION || h < ZOOM_REGION {
         bail!("{}: frames smaller than the zoom region", dir.display());
     }
-    let (zx, zy) = most_different_window(&first, &last);
+    let (zx, zy) = most_structured_window(&first, &last);
     let scale = f64::from(THUMB) / f64::from(w.max(h));
     let (tw, th) = (
         ((f64::from(w) * scale).round() as u32).max(1),
@@ -526,23 +511,55 @@ fn sheet(dir: &Path, steps: usize) -> Result<RgbImage> {
     Ok(out)
 }
 
-/// Top-left corner of the `ZOOM_REGION²` window (stride 4) with the largest summed absolute
-/// difference between `a` and `b`; the first such window on ties.
-fn most_different_window(a: &RgbImage, b: &RgbImage) -> (u32, u32) {
+/// Top-left corner of the `ZOOM_REGION²` window (stride 4) with the most structure in both
+/// `a` and `b`: the largest product of the two images' summed gradient magnitudes (grey
+/// level, forward differences) over the window; the first such window on ties. Where both
+/// endpoints have edges, a cross-fade shows two sets of them and a transport one.
+fn most_structured_window(a: &RgbImage, b: &RgbImage) -> (u32, u32) {
     let (w, h) = a.dimensions();
-    let diff = |x: u32, y: u32| -> u64 {
-        let (p, q) = (a.get_pixel(x, y), b.get_pixel(x, y));
-        (0..3).map(|c| u64::from(p[c].abs_diff(q[c]))).sum()
+    let gradient = |img: &RgbImage| -> Vec<f64> {
+        let grey = |x: u32, y: u32| -> f64 {
+            img.get_pixel(x, y)
+                .0
+                .iter()
+                .map(|&v| f64::from(v))
+                .sum::<f64>()
+                / 3.0
+        };
+        (0..h)
+            .flat_map(|y| (0..w).map(move |x| (x, y)))
+            .map(|(x, y)| {
+                let dx = if x + 1 < w {
+                    grey(x + 1, y) - grey(x, y)
+                } else {
+                    0.0
+                };
+                let dy = if y + 1 < h {
+                    grey(x, y + 1) - grey(x, y)
+                } else {
+                    0.0
+                };
+                dx.abs() + dy.abs()
+            })
+            .collect()
     };
-    let mut best = (0, (0, 0));
+    let (ga, gb) = (gradient(a), gradient(b));
+    let window = |g: &[f64], x: u32, y: u32| -> f64 {
+        (y..y + ZOOM_REGION)
+            .map(|yy| {
+                let row = (yy * w) as usize;
+                g[row + x as usize..row + (x + ZOOM_REGION) as usize]
+                    .iter()
+                    .sum::<f64>()
+            })
+            .sum()
+    };
+    let mut best = (f64::NEG_INFINITY, (0, 0));
     for y in (0..=h - ZOOM_REGION).step_by(4) {
         for x in (0..=w - ZOOM_REGION).step_by(4) {
-            let sum: u64 = (y..y + ZOOM_REGION)
-                .flat_map(|yy| (x..x + ZOOM_REGION).map(move |xx| (xx, yy)))
-                .map(|(xx, yy)| diff(xx, yy))
-                .sum();
-            if sum > best.0 {
-                best = (sum, (x, y));
+            let score = window(&ga, x, y) * window(&gb, x, y);
+            if score > best.0 {
+                best = (score, (x, y));
             }
         }
     }

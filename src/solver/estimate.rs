@@ -23,7 +23,7 @@ use burn::tensor::{Device, Tensor};
 use crate::error::Result;
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
-use crate::solver::ipalm::{Ipalm, LevelState, SweepKind};
+use crate::solver::ipalm::{Ipalm, LevelState, SweepCarry, SweepKind};
 use crate::solver::multilevel::{Multilevel, level_endpoints};
 use crate::solver::observer::Phase;
 
@@ -81,8 +81,10 @@ fn time_sweeps(
     kind: SweepKind,
     sweeps: usize,
 ) -> Result<f64> {
-    let sweep = |state: &mut LevelState| -> Result<()> {
-        let report = ipalm.sweep(state, kind)?;
+    // As the driver runs them: each sweep starts from what the previous one carried.
+    let mut carry = SweepCarry::default();
+    let mut sweep = |state: &mut LevelState| -> Result<()> {
+        let report = ipalm.sweep_carrying(state, kind, &mut carry)?;
         // Reading the energy back synchronises the backend, as the driver does.
         ipalm.energy_after(state, Some(&report));
         Ok(())

@@ -628,19 +628,57 @@ impl Ipalm {
     /// state. Every step is applied only once it is known to be finite, so `state` is then a
     /// finite iterate: the steps `1..k−1` of this sweep done, the rest as before.
     pub fn sweep(&self, state: &mut LevelState, kind: SweepKind) -> Result<SweepReport> {
+        self.sweep_carrying(state, kind, &mut SweepCarry::default())
+    }
+
+    /// [`sweep`](Self::sweep), starting from what the previous sweep of the same state left
+    /// in `carry` and leaving there what the next one can start from (sequential schedule;
+    /// the batched one empties it). The iterate is the same, bit for bit, as without it.
+    ///
+    /// `carry` must have come from sweeps of this `state` only, with nothing else changing
+    /// it in between: a new level, a resumed or edited state starts from an empty one.
+    ///
+    /// # Errors
+    ///
+    /// As [`sweep`](Self::sweep); `carry` is then empty.
+    pub fn sweep_carrying(
+        &self,
+        state: &mut LevelState,
+        kind: SweepKind,
+        carry: &mut SweepCarry,
+    ) -> Result<SweepReport> {
         if self.config.schedule == Schedule::Batched {
+            carry.clear();
             return self.sweep_batched(state, kind);
         }
+        let result = self.sweep_sequential(state, kind, carry);
+        if result.is_err() {
+            carry.clear();
+        }
+        result
+    }
+
+    /// The sequential schedule's sweep (SPEC §6, Algorithm 1).
+    fn sweep_sequential(
+        &self,
+        state: &mut LevelState,
+        kind: SweepKind,
+        carry: &mut SweepCarry,
+    ) -> Result<SweepReport> {
         let k_steps = state.steps();
         let mut report = SweepReport::empty(k_steps);
-        // What the feature step of k computed that the deformation step of k + 1 needs.
-        let mut carried: Option<NextWarp> = None;
+        carry.fit(k_steps);
+        // What the feature step of k computed that the deformation step of k + 1 needs; for
+        // k = 1, what the previous sweep's feature step of 1 left (φ_1 and f_1 unchanged).
+        let mut carried: Option<FrameProducts> = carry.take(1);
         for k in 1..=k_steps {
             if kind == SweepKind::Joint {
                 let rgb = self.layout.rgb_part(state.f[k].clone());
                 let a = self.energy.anisotropy().compute(rgb);
                 let [_, h, w] = a.dims();
                 let a = a.reshape([1, h, w]);
+                // φ_k changes: whatever was carried for k no longer holds.
+                carry.take(k);
                 let (phi_new, step) = self.deformation_step(state, k, a.clone(), carried.take())?;
                 state.l_phi[k - 1] = step.lipschitz;
                 // Also after a restart: φ_k^prev ← φ_k, so the next sweep extrapolates along
@@ -650,8 +688,9 @@ impl Ipalm {
                 report.record_deformation(k, step);
             }
             if k < k_steps {
-                let (f_new, step, next) = self.feature_step(state, k)?;
+                let (f_new, step, next, own) = self.feature_step(state, k, carry.take(k + 1))?;
                 carried = Some(next);
+                carry.put(k, own);
                 state.l_f[k - 1] = step.lipschitz.clone();
                 state.f_prev[k] = std::mem::replace(&mut state.f[k], f_new);
                 report.record_features(k, step);
@@ -670,10 +709,10 @@ impl Ipalm {
         state: &LevelState,
         k: usize,
         a: Tensor<3>,
-        carried: Option<NextWarp>,
+        carried: Option<FrameProducts>,
     ) -> Result<(Tensor<4>, DeformationStep)> {
         let (coeffs_k, current_warp) = match carried {
-            Some(NextWarp { coeffs, warped }) => (coeffs, Some(warped)),
+            Some(FrameProducts { coeffs, warped }) => (coeffs, Some(warped)),
             None => (self.energy.bspline().coefficients(state.f[k].clone()), None),
         };
         let problem = DeformationProblem {
@@ -766,13 +805,17 @@ impl Ipalm {
 
     /// The feature step of `k < K` (SPEC §6 step 3), block by block: returns `f_new`.
     ///
-    /// Also returns `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]`, which the deformation step of
-    /// `k + 1` starts from.
+    /// `next`, when given, holds `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` (the previous sweep's
+    /// feature step of `k + 1` computed them; neither has changed since); otherwise they are
+    /// computed. Returns them too, for the deformation step of `k + 1`, and `P f_new` and
+    /// `T[f_new, φ_k]` as the accepted trials computed them (`None` when a block gave up).
+    #[allow(clippy::type_complexity)]
     fn feature_step(
         &self,
         state: &LevelState,
         k: usize,
-    ) -> Result<(Tensor<4>, FeatureStep, NextWarp)> {
+        next: Option<FrameProducts>,
+    ) -> Result<(Tensor<4>, FeatureStep, FrameProducts, Option<FrameProducts>)> {
         let bspline = self.energy.bspline();
         let f_k = state.f[k].clone();
         let f_tilde = if self.config.beta > 0.0 {
@@ -784,8 +827,13 @@ impl Ipalm {
         // whole step: φ_k's stencil serves every block and trial, and T[f_{k+1}, φ_{k+1}] does
         // not depend on f_k at all.
         let sampler_k = bspline.sampler(state.phi[k - 1].clone());
-        let next_coeffs = bspline.coefficients(state.f[k + 1].clone());
-        let next_warped = bspline.interpolate(next_coeffs.clone(), state.phi[k].clone());
+        let next = next.unwrap_or_else(|| {
+            let coeffs = bspline.coefficients(state.f[k + 1].clone());
+            let warped = bspline.interpolate(coeffs.clone(), state.phi[k].clone());
+            FrameProducts { coeffs, warped }
+        });
+        // The accepted trials' P x and T[x, φ_k], block by block.
+        let mut own = Some((Vec::new(), Vec::new()));
 
         let mut blocks = Vec::new();
         let mut step = FeatureStep {
@@ -800,7 +848,7 @@ impl Ipalm {
                 ipalm: self,
                 sampler_k: &sampler_k,
                 prev: state.f[k - 1].clone().narrow(1, start, len),
-                next: next_warped.clone().narrow(1, start, len),
+                next: next.warped.clone().narrow(1, start, len),
                 steps: state.steps() as f64,
             };
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
@@ -825,9 +873,10 @@ impl Ipalm {
             let mut norms = (f64::NAN, f64::NAN);
             let search = bt.search(state.l_f[k - 1][b], |l| {
                 let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
+                let products = problem.products(candidate.clone());
                 let v = read_scalars(
                     &self.grid,
-                    problem.norms(&problem.residuals(candidate.clone())),
+                    problem.norms(&problem.residuals_of(candidate.clone(), &products)),
                 );
                 norms = (v[0], v[1]);
                 let q_new = problem.decision_of(norms);
@@ -841,7 +890,7 @@ impl Ipalm {
                         l,
                         slack,
                     ) {
-                        Trial::Accepted(candidate)
+                        Trial::Accepted((candidate, products))
                     } else {
                         Trial::Rejected
                     },
@@ -853,27 +902,80 @@ impl Ipalm {
                 _ => None,
             };
             // A block whose search gave up keeps its current values.
-            blocks.push(
-                search
-                    .accepted
-                    .unwrap_or_else(|| state.f[k].clone().narrow(1, start, len)),
-            );
+            blocks.push(match search.accepted {
+                Some((candidate, products)) => {
+                    if let Some((coeffs, warped)) = own.as_mut() {
+                        coeffs.push(products.coeffs);
+                        warped.push(products.warped);
+                    }
+                    candidate
+                }
+                None => {
+                    own = None;
+                    state.f[k].clone().narrow(1, start, len)
+                }
+            });
             step.lipschitz.push(search.lipschitz);
             step.trials.push(search.trials);
         }
-        let next = NextWarp {
-            coeffs: next_coeffs,
-            warped: next_warped,
-        };
-        Ok((Tensor::cat(blocks, 1), step, next))
+        let own = own.map(|(coeffs, warped)| FrameProducts {
+            coeffs: Tensor::cat(coeffs, 1),
+            warped: Tensor::cat(warped, 1),
+        });
+        Ok((Tensor::cat(blocks, 1), step, next, own))
     }
 }
 
-/// `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` as the feature step of `k` computed them: within a
-/// sweep neither changes before the deformation step of `k + 1`, which needs both.
-struct NextWarp {
+/// `P f_k` and `T[f_k, φ_k]` (`[1, C_tot, H, W]` each) as a step computed them: the feature
+/// step of `k − 1` computes them and the deformation step of `k` starts from them (neither
+/// changes in between), and the accepted trials of `f_k`'s step leave them for the next
+/// sweep's feature step of `k − 1`.
+#[derive(Clone, Debug)]
+pub(super) struct FrameProducts {
     coeffs: Tensor<4>,
     warped: Tensor<4>,
+}
+
+/// What a sequential sweep leaves for the next sweep of the same state: for each `k`
+/// (`1..K`) whose feature step accepted a trial in every block, `P f_k` and `T[f_k, φ_k]`
+/// as that trial computed them. The next sweep's feature step of `k − 1` needs exactly these
+/// (`f_k` and `φ_k` change only after it), and its deformation step of `k = 1` too: one
+/// prefilter and one warp of all channels fewer per feature step. Costs `2·(K − 1)` frames
+/// of memory (SPEC §6 is unchanged: the values are the ones that would be recomputed).
+///
+/// See [`Ipalm::sweep_carrying`].
+#[derive(Debug, Default)]
+pub struct SweepCarry {
+    products: Vec<Option<FrameProducts>>,
+}
+
+impl SweepCarry {
+    /// Forgets everything: the next sweep computes what it needs.
+    pub fn clear(&mut self) {
+        self.products.clear();
+    }
+
+    /// Whether anything is held.
+    pub fn is_empty(&self) -> bool {
+        self.products.iter().all(Option::is_none)
+    }
+
+    /// Room for `k_steps` (a carry of another `K` is forgotten).
+    fn fit(&mut self, k_steps: usize) {
+        if self.products.len() != k_steps + 1 {
+            self.products = vec![None; k_steps + 1];
+        }
+    }
+
+    /// What is held for `k`, removed (nothing for `k = K`: `f_K` has no feature step).
+    fn take(&mut self, k: usize) -> Option<FrameProducts> {
+        self.products.get_mut(k).and_then(Option::take)
+    }
+
+    /// Holds `products` for `k`.
+    fn put(&mut self, k: usize, products: Option<FrameProducts>) {
+        self.products[k] = products;
+    }
 }
 
 /// `Q` restricted to one channel block of `f_k` (SPEC §6 step 3):
@@ -891,9 +993,25 @@ struct FeatureProblem<'a> {
 impl FeatureProblem<'_> {
     /// The residuals of the two data terms: `T[x, φ_k] − f_{k−1}` and `T[f_{k+1}, φ_{k+1}] − x`.
     fn residuals(&self, x: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
-        let bspline = self.ipalm.energy.bspline();
-        let warped = self.sampler_k.sample(bspline.coefficients(x.clone()));
+        let warped = self
+            .sampler_k
+            .sample(self.ipalm.energy.bspline().coefficients(x.clone()));
         (warped - self.prev.clone(), self.next.clone() - x)
+    }
+
+    /// `P x` and `T[x, φ_k]`.
+    fn products(&self, x: Tensor<4>) -> FrameProducts {
+        let coeffs = self.ipalm.energy.bspline().coefficients(x);
+        let warped = self.sampler_k.sample(coeffs.clone());
+        FrameProducts { coeffs, warped }
+    }
+
+    /// [`residuals`](Self::residuals) from `x`'s [`products`](Self::products).
+    fn residuals_of(&self, x: Tensor<4>, products: &FrameProducts) -> (Tensor<4>, Tensor<4>) {
+        (
+            products.warped.clone() - self.prev.clone(),
+            self.next.clone() - x,
+        )
     }
 
     /// `Q` from its residuals, differentiable (float32 sum).

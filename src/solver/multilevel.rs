@@ -15,7 +15,7 @@ use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
 use crate::model::resample::{Resize, prolongate_deformation};
 use crate::solver::ipalm::{
-    Ipalm, IpalmConfig, LevelState, SweepKind, SweepReport, initial_lipschitz,
+    Ipalm, IpalmConfig, LevelState, SweepCarry, SweepKind, SweepReport, initial_lipschitz,
 };
 use crate::solver::observer::{LevelStop, LevelSummary, Observer, Phase, SweepEvent, Termination};
 
@@ -463,6 +463,8 @@ impl Multilevel {
             let mut level_stop = LevelStop::Sweeps;
             let mut joint_sweeps = resumed_sweeps;
             let mut last_numbers: Option<[f64; 3]> = None;
+            // What each sweep leaves for the next on this level's state.
+            let mut carry = SweepCarry::default();
             'phases: for (phase, sweeps, kind) in phases {
                 if sweeps == 0 && phase == Phase::Features {
                     continue;
@@ -502,7 +504,7 @@ impl Multilevel {
                     // The last finite iterate: cheap to keep, these handles are the tensors
                     // the sweep moves into `f_prev` and `phi_prev` anyway.
                     let before = (state.f.clone(), state.phi.clone());
-                    let outcome = match ipalm.sweep(&mut state, kind) {
+                    let outcome = match ipalm.sweep_carrying(&mut state, kind, &mut carry) {
                         Ok(report) => Ok(report),
                         Err(Error::NonFinite { what }) => Err(what),
                         Err(other) => return Err(other),
@@ -510,6 +512,7 @@ impl Multilevel {
                     let injected = self.inject_nonfinite == Some((level, sweep));
                     if injected {
                         state.f[1] = state.f[1].clone().mul_scalar(f64::NAN);
+                        carry.clear();
                     }
                     match outcome.and_then(|report| {
                         // A fault injected after the sweep is not in its report.
@@ -534,6 +537,7 @@ impl Multilevel {
                             }
                         }
                         Err(what) => {
+                            carry.clear();
                             let (f, phi) = before;
                             state.f_prev = f.clone();
                             state.phi_prev = phi.clone();

@@ -32,6 +32,18 @@ fn blob(grid: &Grid, cy: f64, cx: f64) -> Tensor<4> {
     grid.tensor(values, [1, 3, n, n])
 }
 
+/// A deep-model frame of [`blob`]: η-scaled RGB and four feature channels that move with
+/// the blob, `[1, 7, n, n]`.
+fn deep_frame(grid: &Grid, eta: f64, cy: f64, cx: f64) -> Tensor<4> {
+    let features: Vec<Tensor<4>> = (0..4)
+        .map(|c| blob(grid, cy + c as f64 * 0.5, cx).narrow(1, c % 3, 1))
+        .collect();
+    Tensor::cat(
+        vec![blob(grid, cy, cx).mul_scalar(eta), Tensor::cat(features, 1)],
+        1,
+    )
+}
+
 /// `Id + amplitude · bump` with a smooth bump that vanishes on the boundary, `[1, 2, n, n]`.
 fn bumped(grid: &Grid, amplitude: f64) -> Tensor<4> {
     let n = grid.height();
@@ -430,19 +442,7 @@ fn the_energy_after_a_sweep_reuses_the_sweeps_residuals(backend: Backend) {
     let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
     let eta = 1e-3;
     let layout = FeatureLayout::deep(eta, 4).unwrap();
-    // η-scaled RGB and four feature channels that move with the blob.
-    let frame = |cy: f64, cx: f64| {
-        let features: Vec<Tensor<4>> = (0..4)
-            .map(|c| blob(&grid, cy + c as f64 * 0.5, cx).narrow(1, c % 3, 1))
-            .collect();
-        Tensor::cat(
-            vec![
-                blob(&grid, cy, cx).mul_scalar(eta),
-                Tensor::cat(features, 1),
-            ],
-            1,
-        )
-    };
+    let frame = |cy: f64, cx: f64| deep_frame(&grid, eta, cy, cx);
     let params = EnergyParams::deep();
     let bspline = BSpline::new(&grid);
     let host_data_terms = |state: &LevelState| -> Vec<f64> {
@@ -520,7 +520,81 @@ fn the_energy_after_a_sweep_reuses_the_sweeps_residuals(backend: Backend) {
     }
 }
 
+/// A sweep that starts from what the previous one carried (`P f_k` and `T[f_k, φ_k]` of
+/// the accepted feature trials) leaves the same iterate, bit for bit, with the same
+/// decisions, as one that computes everything again: over feature-only and joint sweeps,
+/// with `K = 4` so that both the feature steps' `f_{k+1}` and the first deformation step
+/// take carried values. The batched schedule carries nothing.
+fn a_carried_sweep_equals_a_fresh_one(backend: Backend) {
+    use deepmorph::solver::ipalm::{Schedule, SweepCarry};
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let eta = 1e-3;
+    let layout = FeatureLayout::deep(eta, 4).unwrap();
+    let params = EnergyParams::deep();
+    let ipalm = Ipalm::new(&grid, params, layout.clone(), IpalmConfig::default()).unwrap();
+    let initial = LevelState::initial(
+        &grid,
+        &layout,
+        deep_frame(&grid, eta, 7.0, 6.0),
+        deep_frame(&grid, eta, 8.5, 9.0),
+        4,
+        params.delta,
+    )
+    .unwrap();
+    let (mut fresh, mut carried) = (initial.clone(), initial.clone());
+    let mut carry = SweepCarry::default();
+    let kinds = [
+        SweepKind::FeaturesOnly,
+        SweepKind::FeaturesOnly,
+        SweepKind::Joint,
+        SweepKind::Joint,
+        SweepKind::Joint,
+    ];
+    for (sweep, kind) in kinds.into_iter().enumerate() {
+        let what = format!("{backend:?} sweep {sweep} ({kind:?})");
+        let a = ipalm.sweep(&mut fresh, kind).unwrap();
+        let b = ipalm
+            .sweep_carrying(&mut carried, kind, &mut carry)
+            .unwrap();
+        assert!(!carry.is_empty(), "{what}: nothing carried");
+        assert_eq!(a.residual_norm2, b.residual_norm2, "{what}");
+        assert_eq!(format!("{a:?}"), format!("{b:?}"), "{what}: decisions");
+        assert_eq!(fresh.l_f, carried.l_f, "{what}");
+        assert_eq!(fresh.l_phi, carried.l_phi, "{what}");
+        for (x, y) in fresh.f.iter().zip(&carried.f) {
+            assert_eq!(values(x.clone()), values(y.clone()), "{what}: f");
+        }
+        for (x, y) in fresh.phi.iter().zip(&carried.phi) {
+            assert_eq!(values(x.clone()), values(y.clone()), "{what}: φ");
+        }
+    }
+    // The joint sweeps moved the frames: the carried values were used on a changing state.
+    assert_ne!(
+        values(initial.phi[0].clone()),
+        values(carried.phi[0].clone())
+    );
+    let batched = Ipalm::new(
+        &grid,
+        params,
+        layout,
+        IpalmConfig {
+            schedule: Schedule::Batched,
+            ..IpalmConfig::default()
+        },
+    )
+    .unwrap();
+    batched
+        .sweep_carrying(&mut carried, SweepKind::Joint, &mut carry)
+        .unwrap();
+    assert!(
+        carry.is_empty(),
+        "{backend:?}: the batched schedule carried something"
+    );
+}
+
 on_each_cpu_backend!(
+    a_carried_sweep_equals_a_fresh_one,
     the_energy_after_a_sweep_reuses_the_sweeps_residuals,
     decision_sums_are_float64_sums_of_the_float32_values,
     a_level_stops_when_the_energy_stalls,
