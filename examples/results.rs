@@ -10,6 +10,7 @@
 //! cargo run --release --example results -- --size 288 --pairs motorcycle --models deep \
 //!     --vary tau=0.05,0.1,0.25
 //! cargo run --release --example results -- --size 256 --backend wgpu  # on a GPU
+//! cargo run --release --example results -- --size 256 --report         # what is done so far
 //! ```
 //!
 //! Each morph runs in a child process of this program (so its peak resident memory is its
@@ -107,6 +108,10 @@ struct Args {
     /// Plan and print the runs, run nothing.
     #[arg(long)]
     dry_run: bool,
+    /// Run nothing: the table and sheets of the runs done so far (a study still running in
+    /// another process, or stopped part way).
+    #[arg(long)]
+    report: bool,
     /// Internal: run this one morph (a child process of the study).
     #[arg(long, hide = true)]
     one: Option<String>,
@@ -201,8 +206,8 @@ fn main() -> Result<()> {
                 println!("[{}/{}] {name}: done before, kept", i + 1, runs.len());
                 record
             }
-            None if args.dry_run => {
-                println!("[{}/{}] {name}: to run", i + 1, runs.len());
+            None if args.dry_run || args.report => {
+                println!("[{}/{}] {name}: not run yet, left out", i + 1, runs.len());
                 continue;
             }
             None => {
@@ -691,10 +696,12 @@ fn table(records: &[RunRecord], key: &str) -> String {
     t
 }
 
-/// A share as a percentage, `0` when none.
+/// A share as a percentage (`0` when none, scientific below 0.01 %: a few pixels).
 fn share(x: f64) -> String {
     if x == 0.0 {
         "0".into()
+    } else if x < 1e-4 {
+        format!("{x:.1e}")
     } else {
         format!("{:.2} %", 100.0 * x)
     }
