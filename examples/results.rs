@@ -449,7 +449,12 @@ fn utc_now() -> String {
     let days = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs() / 86_400) as i64;
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
+    let (year, month, day) = civil_date(days);
+    format!("{year:04}-{month:02}-{day:02}")
+}
+
+/// The proleptic Gregorian date of `days` since 1970-01-01 (Howard Hinnant's algorithm).
+fn civil_date(days: i64) -> (i64, i64, i64) {
     let z = days + 719_468;
     let era = z.div_euclid(146_097);
     let doe = z - era * 146_097;
@@ -459,7 +464,7 @@ fn utc_now() -> String {
     let day = doy - (153 * mp + 2) / 5 + 1;
     let month = if mp < 10 { mp + 3 } else { mp - 9 };
     let year = yoe + era * 400 + i64::from(month <= 2);
-    format!("{year:04}-{month:02}-{day:02}")
+    (year, month, day)
 }
 
 /// The contact sheet of a morph: five frames (`k = 0, K/4, K/2, 3K/4, K`) with the zoomed
@@ -740,4 +745,86 @@ fn update_doc(doc: &Path, key: &str, table: &str) -> Result<()> {
     std::fs::write(&tmp, updated).with_context(|| format!("cannot write {}", tmp.display()))?;
     std::fs::rename(&tmp, doc).with_context(|| format!("cannot replace {}", doc.display()))?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn civil_dates() {
+        assert_eq!(civil_date(0), (1970, 1, 1));
+        assert_eq!(civil_date(59), (1970, 3, 1));
+        assert_eq!(civil_date(11_016), (2000, 2, 29));
+        assert_eq!(civil_date(20_790), (2026, 12, 3));
+    }
+
+    #[test]
+    fn a_section_is_replaced_appended_or_refused() {
+        let dir = std::env::temp_dir().join(format!("deepmorph-results-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let doc = dir.join("results.md");
+        std::fs::write(
+            &doc,
+            "# R\nbefore\n<!-- results:a -->\nold\n<!-- /results:a -->\nafter\n",
+        )
+        .unwrap();
+        update_doc(&doc, "a", "new\n").unwrap();
+        update_doc(&doc, "b", "other\n").unwrap();
+        assert_eq!(
+            std::fs::read_to_string(&doc).unwrap(),
+            "# R\nbefore\n<!-- results:a -->\nnew\n<!-- /results:a -->\nafter\n\n\
+             <!-- results:b -->\nother\n<!-- /results:b -->\n"
+        );
+        std::fs::write(&doc, "<!-- results:a -->\n").unwrap();
+        assert!(update_doc(&doc, "a", "x").is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_zoom_region_has_edges_in_both_images() {
+        // Flat images, except a square edge in both at (64, 32) and one in `a` only.
+        let mut a = RgbImage::from_pixel(128, 96, Rgb([100, 100, 100]));
+        let mut b = a.clone();
+        for y in 40..60 {
+            for x in 70..90 {
+                a.put_pixel(x, y, Rgb([250, 250, 250]));
+                b.put_pixel(x + 2, y, Rgb([0, 0, 0]));
+            }
+        }
+        for y in 0..20 {
+            for x in 0..20 {
+                a.put_pixel(x, y, Rgb([0, 0, 0]));
+            }
+        }
+        let (x, y) = most_structured_window(&a, &b);
+        assert!(
+            (44..=72).contains(&x) && (12..=44).contains(&y),
+            "({x}, {y})"
+        );
+    }
+
+    #[test]
+    fn names_and_plans() {
+        let args = Args::parse_from([
+            "results",
+            "--size",
+            "128",
+            "--pairs",
+            "faces",
+            "--vary",
+            "tau=0.1,0.2",
+        ]);
+        let runs = plan(&args).unwrap();
+        // τ is the deep model's: the RGB model runs no τ study.
+        let names: Vec<_> = runs.iter().map(RunSpec::name).collect();
+        assert_eq!(names, ["faces_deep_128_tau0.1", "faces_deep_128_tau0.2"]);
+        let bad = Args::parse_from(["results", "--pairs", "faces", "--vary", "sigma=1"]);
+        assert!(plan(&bad).is_err());
+        assert_eq!(minutes(48.4), "48 s");
+        assert_eq!(minutes(725.0), "12 min 05 s");
+        assert_eq!(share(0.0), "0");
+        assert_eq!(share(2.2e-5), "2.2e-5");
+        assert_eq!(share(0.0011), "0.11 %");
+    }
 }
