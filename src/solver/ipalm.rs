@@ -761,10 +761,13 @@ impl Ipalm {
         let mut accepted_l = search.lipschitz;
 
         if self.config.safeguard {
-            let at_phi = match current_warp {
-                Some(warped) => problem.local_energy_of(phi.clone(), warped),
-                None => problem.local_energy(phi.clone()),
-            };
+            // By blocks, as a carried one was: the safeguard's reference value is then the
+            // same whichever way `T[f_k, φ_k]` came.
+            let warped = current_warp.unwrap_or_else(|| {
+                let sampler = self.energy.bspline().sampler(phi.clone());
+                self.warp_by_blocks(&sampler, problem.coeffs_k.clone())
+            });
+            let at_phi = problem.local_energy_of(phi.clone(), warped);
             current = Some(at_phi);
             let tolerance = self.slack() * at_phi.value.abs();
             // Written so that a NaN energy counts as a rise.
@@ -803,6 +806,30 @@ impl Ipalm {
         Ok((phi_new, step))
     }
 
+    /// `T[c, φ]` for the coefficients `c` of a whole frame (`[1, C_tot, H, W]`), sampled
+    /// block by block as the feature steps' trials sample it.
+    ///
+    /// A sampler's result for a channel can depend on how many channels it reads at once
+    /// (the fused kernels take a planar or a channels-last path, the composed one a scalar or
+    /// a row gather; their sums round differently). A `T[f_k, φ_k]` carried from a trial and
+    /// one computed afresh must be the same values (SPEC §6's decisions compare them), so
+    /// every such warp of a whole frame goes through here. The prefilter does not have this
+    /// problem: each channel's lines are solved alike whatever the tensor holds.
+    fn warp_by_blocks(&self, sampler: &Sampler, coeffs: Tensor<4>) -> Tensor<4> {
+        let blocks = self.layout.blocks();
+        if blocks.len() == 1 {
+            return sampler.sample(coeffs);
+        }
+        let parts = blocks
+            .iter()
+            .map(|block| {
+                let (start, len) = (block.channels.start, block.channels.len());
+                sampler.sample(coeffs.clone().narrow(1, start, len))
+            })
+            .collect();
+        Tensor::cat(parts, 1)
+    }
+
     /// The feature step of `k < K` (SPEC §6 step 3), block by block: returns `f_new`.
     ///
     /// `next`, when given, holds `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` (the previous sweep's
@@ -829,7 +856,8 @@ impl Ipalm {
         let sampler_k = bspline.sampler(state.phi[k - 1].clone());
         let next = next.unwrap_or_else(|| {
             let coeffs = bspline.coefficients(state.f[k + 1].clone());
-            let warped = bspline.interpolate(coeffs.clone(), state.phi[k].clone());
+            let sampler = bspline.sampler(state.phi[k].clone());
+            let warped = self.warp_by_blocks(&sampler, coeffs.clone());
             FrameProducts { coeffs, warped }
         });
         // The accepted trials' P x and T[x, φ_k], block by block.

@@ -35,8 +35,15 @@ fn blob(grid: &Grid, cy: f64, cx: f64) -> Tensor<4> {
 /// A deep-model frame of [`blob`]: η-scaled RGB and four feature channels that move with
 /// the blob, `[1, 7, n, n]`.
 fn deep_frame(grid: &Grid, eta: f64, cy: f64, cx: f64) -> Tensor<4> {
-    let features: Vec<Tensor<4>> = (0..4)
-        .map(|c| blob(grid, cy + c as f64 * 0.5, cx).narrow(1, c % 3, 1))
+    deep_frame_of(grid, eta, cy, cx, 4)
+}
+
+/// [`deep_frame`] with `channels` feature channels.
+fn deep_frame_of(grid: &Grid, eta: f64, cy: f64, cx: f64, channels: usize) -> Tensor<4> {
+    let features: Vec<Tensor<4>> = (0..channels)
+        .map(|c| {
+            blob(grid, cy + (c % 7) as f64 * 0.5, cx - (c % 5) as f64 * 0.3).narrow(1, c % 3, 1)
+        })
         .collect();
     Tensor::cat(
         vec![blob(grid, cy, cx).mul_scalar(eta), Tensor::cat(features, 1)],
@@ -524,20 +531,29 @@ fn the_energy_after_a_sweep_reuses_the_sweeps_residuals(backend: Backend) {
 /// the accepted feature trials) leaves the same iterate, bit for bit, with the same
 /// decisions, as one that computes everything again: over feature-only and joint sweeps,
 /// with `K = 4` so that both the feature steps' `f_{k+1}` and the first deformation step
-/// take carried values. The batched schedule carries nothing.
+/// take carried values, and with few and many feature channels. The batched schedule
+/// carries nothing.
 fn a_carried_sweep_equals_a_fresh_one(backend: Backend) {
+    // 4 feature channels, and 64 and 128 as VGG19's taps have, where the samplers take
+    // other paths than for a few channels (see `Ipalm::warp_by_blocks`).
+    for channels in [4, 64, 128] {
+        carried_and_fresh_sweeps(backend, channels);
+    }
+}
+
+fn carried_and_fresh_sweeps(backend: Backend, channels: usize) {
     use deepmorph::solver::ipalm::{Schedule, SweepCarry};
     let device = device(backend, Precision::F32, true);
     let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
     let eta = 1e-3;
-    let layout = FeatureLayout::deep(eta, 4).unwrap();
+    let layout = FeatureLayout::deep(eta, channels).unwrap();
     let params = EnergyParams::deep();
     let ipalm = Ipalm::new(&grid, params, layout.clone(), IpalmConfig::default()).unwrap();
     let initial = LevelState::initial(
         &grid,
         &layout,
-        deep_frame(&grid, eta, 7.0, 6.0),
-        deep_frame(&grid, eta, 8.5, 9.0),
+        deep_frame_of(&grid, eta, 7.0, 6.0, channels),
+        deep_frame_of(&grid, eta, 8.5, 9.0, channels),
         4,
         params.delta,
     )
@@ -552,7 +568,7 @@ fn a_carried_sweep_equals_a_fresh_one(backend: Backend) {
         SweepKind::Joint,
     ];
     for (sweep, kind) in kinds.into_iter().enumerate() {
-        let what = format!("{backend:?} sweep {sweep} ({kind:?})");
+        let what = format!("{backend:?} C {channels}, sweep {sweep} ({kind:?})");
         let a = ipalm.sweep(&mut fresh, kind).unwrap();
         let b = ipalm
             .sweep_carrying(&mut carried, kind, &mut carry)
