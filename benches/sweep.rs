@@ -9,9 +9,7 @@
 //!
 //! The state is a mid-run one: the demo pair after a few sweeps at the benchmarked size, so
 //! the deformations are non-trivial and backtracking behaves as in a real run. Each timed
-//! iteration sweeps a fresh copy of that state, with a copy of what the sweep before it
-//! carried (`SweepCarry`: as a level's sweeps run, from 2026-12-03 on; the figures before
-//! that date swept without one), and ends with `device.sync()`.
+//! iteration sweeps a fresh copy of that state and ends with `device.sync()`.
 //!
 //! ```text
 //! cargo bench --features ndarray,flex --bench sweep
@@ -26,7 +24,7 @@ use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use deepmorph::app::demo::demo_pair;
 use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::model::layout::FeatureLayout;
-use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepCarry, SweepKind};
+use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind};
 use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
@@ -82,19 +80,13 @@ fn deep_benches(c: &mut Criterion) {
             )
             .unwrap();
             let mut warm = LevelState::initial(&grid, &layout, f_a, f_b, DEEP_STEPS, 1.0).unwrap();
-            // A running level's sweep: it starts from what the previous one carried.
-            let mut warm_carry = SweepCarry::default();
             for _ in 0..3 {
-                ipalm
-                    .sweep_carrying(&mut warm, SweepKind::Joint, &mut warm_carry)
-                    .unwrap();
+                ipalm.sweep(&mut warm, SweepKind::Joint).unwrap();
             }
             group.bench_with_input(BenchmarkId::new(backend.name(), n), &n, |bench, _| {
                 bench.iter(|| {
-                    let (mut state, mut carry) = (warm.clone(), warm_carry.clone());
-                    let report = ipalm
-                        .sweep_carrying(&mut state, SweepKind::Joint, &mut carry)
-                        .unwrap();
+                    let mut state = warm.clone();
+                    let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
                     device.sync().expect("device sync");
                     report
                 })
@@ -141,18 +133,10 @@ fn benches(c: &mut Criterion) {
                 IpalmConfig::default(),
             )
             .unwrap();
-            // A running level's sweep: it starts from what the previous one carried.
-            let mut warm_state = warm.state.clone();
-            let mut warm_carry = SweepCarry::default();
-            ipalm
-                .sweep_carrying(&mut warm_state, SweepKind::Joint, &mut warm_carry)
-                .unwrap();
             group.bench_with_input(BenchmarkId::new(backend.name(), n), &n, |bench, _| {
                 bench.iter(|| {
-                    let (mut state, mut carry) = (warm_state.clone(), warm_carry.clone());
-                    let report = ipalm
-                        .sweep_carrying(&mut state, SweepKind::Joint, &mut carry)
-                        .unwrap();
+                    let mut state = warm.state.clone();
+                    let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
                     device.sync().expect("device sync");
                     report
                 })

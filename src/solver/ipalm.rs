@@ -972,7 +972,7 @@ pub(super) struct FrameProducts {
 /// of memory (SPEC §6 is unchanged: the values are the ones that would be recomputed).
 ///
 /// See [`Ipalm::sweep_carrying`].
-#[derive(Clone, Debug, Default)]
+#[derive(Debug, Default)]
 pub struct SweepCarry {
     products: Vec<Option<FrameProducts>>,
 }
