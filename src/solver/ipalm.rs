@@ -677,8 +677,6 @@ impl Ipalm {
                 let a = self.energy.anisotropy().compute(rgb);
                 let [_, h, w] = a.dims();
                 let a = a.reshape([1, h, w]);
-                // φ_k changes: whatever was carried for k no longer holds.
-                carry.take(k);
                 let (phi_new, step) = self.deformation_step(state, k, a.clone(), carried.take())?;
                 state.l_phi[k - 1] = step.lipschitz;
                 // Also after a restart: φ_k^prev ← φ_k, so the next sweep extrapolates along
@@ -1021,10 +1019,8 @@ struct FeatureProblem<'a> {
 impl FeatureProblem<'_> {
     /// The residuals of the two data terms: `T[x, φ_k] − f_{k−1}` and `T[f_{k+1}, φ_{k+1}] − x`.
     fn residuals(&self, x: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
-        let warped = self
-            .sampler_k
-            .sample(self.ipalm.energy.bspline().coefficients(x.clone()));
-        (warped - self.prev.clone(), self.next.clone() - x)
+        let products = self.products(x.clone());
+        self.residuals_of(x, &products)
     }
 
     /// `P x` and `T[x, φ_k]`.
