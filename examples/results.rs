@@ -231,7 +231,11 @@ fn main() -> Result<()> {
     let sheets = args.doc.parent().unwrap_or(Path::new(".")).join("results");
     std::fs::create_dir_all(&sheets)?;
     for record in &records {
-        let image = sheet(&args.work.join(record.spec.name()), record.spec.steps)?;
+        let dir = args.work.join(record.spec.name());
+        let mut image = sheet(&dir, record.spec.steps)?;
+        if matches!(&record.spec.vary, Some((p, _)) if p == "xi1") {
+            image = below(&image, &field_row(&dir, record.spec.steps, image.width())?);
+        }
         let path = sheets.join(format!("{}.jpg", record.spec.name()));
         let mut file = std::io::BufWriter::new(std::fs::File::create(&path)?);
         image::codecs::jpeg::JpegEncoder::new_with_quality(&mut file, 88)
@@ -521,6 +525,81 @@ fn sheet(dir: &Path, steps: usize) -> Result<RgbImage> {
     Ok(out)
 }
 
+/// The step whose anisotropy and displacement a ξ₁ study shows: `k = 12` of `K = 15` (the
+/// paper's Figure of `ξ₁ = 200`), scaled to other `K`.
+fn field_step(steps: usize) -> usize {
+    ((12 * steps + 7) / 15).clamp(1, steps)
+}
+
+/// The anisotropy weight `a_k` (grey, `0` black to `1 + ξ₂` white) and the displacement
+/// `φ_k − Id` (colour-coded, the wheel's rim the largest displacement of the run) of step
+/// [`field_step`], side by side with the colour wheel, `width` wide: cut from the
+/// `sheet.png` the CLI writes into every morph's folder (rows 2 and 3, column `k`), so the
+/// study shows what a user's own morph shows.
+fn field_row(dir: &Path, steps: usize, width: u32) -> Result<RgbImage> {
+    let path = dir.join("sheet.png");
+    let cli_sheet = image::open(&path)
+        .with_context(|| format!("cannot read {}", path.display()))?
+        .to_rgb8();
+    let first = dir.join(if steps >= 100 {
+        "frame_000.png"
+    } else {
+        "frame_00.png"
+    });
+    let (w, h) = image::image_dimensions(&first)
+        .with_context(|| format!("cannot read {}", first.display()))?;
+    let gap = 4;
+    let expected = ((steps as u32 + 1) * w + steps as u32 * gap, 3 * h + 2 * gap);
+    ensure!(
+        cli_sheet.dimensions() == expected,
+        "{}: {:?}, expected {expected:?} for K = {steps} frames of {w}x{h}",
+        path.display(),
+        cli_sheet.dimensions()
+    );
+    let k = field_step(steps) as u32;
+    let cut = |col: u32, row: u32, cw: u32, ch: u32| {
+        imageops::crop_imm(&cli_sheet, col * (w + gap), row * (h + gap), cw, ch).to_image()
+    };
+    // Two panels as wide as two thumbnails each, the wheel as one.
+    let panel = 2 * THUMB + gap;
+    let scale = f64::from(panel) / f64::from(w.max(h));
+    let (pw, ph) = (
+        ((f64::from(w) * scale).round() as u32).max(1),
+        ((f64::from(h) * scale).round() as u32).max(1),
+    );
+    let side = h.min(w);
+    let mut out = RgbImage::from_pixel(width, ph, Rgb([255, 255, 255]));
+    let panels = [
+        imageops::resize(&cut(k, 1, w, h), pw, ph, imageops::FilterType::Triangle),
+        imageops::resize(&cut(k, 2, w, h), pw, ph, imageops::FilterType::Triangle),
+        imageops::resize(
+            &cut(0, 2, side, side),
+            THUMB.min(ph),
+            THUMB.min(ph),
+            imageops::FilterType::Triangle,
+        ),
+    ];
+    let mut x = 0;
+    for p in &panels {
+        imageops::replace(&mut out, p, i64::from(x), 0);
+        x += p.width() + gap;
+    }
+    Ok(out)
+}
+
+/// `top` above `bottom`, a white gap between, as wide as the wider.
+fn below(top: &RgbImage, bottom: &RgbImage) -> RgbImage {
+    let gap = 4;
+    let mut out = RgbImage::from_pixel(
+        top.width().max(bottom.width()),
+        top.height() + gap + bottom.height(),
+        Rgb([255, 255, 255]),
+    );
+    imageops::replace(&mut out, top, 0, 0);
+    imageops::replace(&mut out, bottom, 0, i64::from(top.height() + gap));
+    out
+}
+
 /// Top-left corner of the `ZOOM_REGION²` window (stride 4) with the most structure in both
 /// `a` and `b`: the largest product of the two images' summed gradient magnitudes (grey
 /// level, forward differences) over the window; the first such window on ties. Where both
@@ -693,6 +772,12 @@ fn table(records: &[RunRecord], key: &str) -> String {
     for r in records {
         let name = r.spec.name();
         let label = match &r.spec.vary {
+            Some((p, v)) if p == "xi1" => format!(
+                "{}, {} model, {p} = {v}; below: anisotropy a and displacement φ_k − Id of step k = {}, colour wheel",
+                r.spec.pair,
+                r.spec.model,
+                field_step(r.spec.steps)
+            ),
             Some((p, v)) => format!("{}, {} model, {p} = {v}", r.spec.pair, r.spec.model),
             None => format!("{}, {} model", r.spec.pair, r.spec.model),
         };
@@ -802,6 +887,43 @@ mod tests {
             (44..=72).contains(&x) && (12..=44).contains(&y),
             "({x}, {y})"
         );
+    }
+
+    #[test]
+    fn the_field_row_cuts_step_k_from_the_cli_sheet() {
+        let dir = std::env::temp_dir().join(format!("deepmorph-fields-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (steps, w, h, gap) = (15u32, 20u32, 10u32, 4u32);
+        // Each cell of the CLI's sheet coloured by (column, row); the gaps white.
+        let cli = RgbImage::from_fn((steps + 1) * w + steps * gap, 3 * h + 2 * gap, |x, y| {
+            let (col, row) = (x / (w + gap), y / (h + gap));
+            if x % (w + gap) >= w || y % (h + gap) >= h {
+                Rgb([255, 255, 255])
+            } else {
+                Rgb([col as u8 * 10, row as u8 * 100, 7])
+            }
+        });
+        cli.save(dir.join("sheet.png")).unwrap();
+        RgbImage::new(w, h).save(dir.join("frame_00.png")).unwrap();
+        let row = field_row(&dir, steps as usize, 600).unwrap();
+        let panel = 2 * THUMB + 4;
+        assert_eq!(row.dimensions(), (600, panel * h / w));
+        let centre = |x0: u32, side: u32| *row.get_pixel(x0 + side / 2, row.height() / 3);
+        assert_eq!(
+            centre(0, panel),
+            Rgb([120, 100, 7]),
+            "anisotropy of step 12"
+        );
+        assert_eq!(
+            centre(panel + 4, panel),
+            Rgb([120, 200, 7]),
+            "displacement of step 12"
+        );
+        assert_eq!(centre(2 * (panel + 4), h), Rgb([0, 200, 7]), "the wheel");
+        assert_eq!((field_step(5), field_step(30)), (4, 24));
+        // A sheet of another K is refused, not cut at the wrong place.
+        assert!(field_row(&dir, 14, 600).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 
     #[test]
