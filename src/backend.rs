@@ -67,6 +67,10 @@ pub struct Capabilities {
     /// Whether the regulariser's weighted density `a · W(J(φ))` and its gradient are the fused
     /// host kernels of [`crate::model::energy::density_op`]: flex. The others compose them.
     pub fused_density: bool,
+    /// Whether the fused spline kernels keep many-channel coefficients channels-last and
+    /// read them so in place ([`crate::model::warp::op`]): flex. Joining channel blocks of
+    /// coefficients then keeps that layout ([`crate::model::warp::BSpline::join`]).
+    pub channels_last_coefficients: bool,
 }
 
 impl Capabilities {
@@ -79,12 +83,14 @@ impl Capabilities {
                 gather: backend.warp_gather(),
                 fused_linearisation: backend == Backend::Flex,
                 fused_density: backend == Backend::Flex,
+                channels_last_coefficients: backend == Backend::Flex,
             },
             None => Self {
                 float64: false,
                 gather: Gather::Elements,
                 fused_linearisation: false,
                 fused_density: false,
+                channels_last_coefficients: false,
             },
         }
     }

@@ -86,6 +86,12 @@ impl Grid {
         self.capabilities.fused_linearisation
     }
 
+    /// Whether this grid's backend keeps many-channel spline coefficients channels-last
+    /// ([`crate::backend::Capabilities::channels_last_coefficients`]).
+    pub fn channels_last_coefficients(&self) -> bool {
+        self.capabilities.channels_last_coefficients
+    }
+
     /// How the warp reads spline coefficients on this grid's backend.
     pub fn gather(&self) -> Gather {
         self.capabilities.gather

@@ -945,7 +945,7 @@ impl Ipalm {
             step.trials.push(search.trials);
         }
         let own = own.map(|(coeffs, warped)| FrameProducts {
-            coeffs: Tensor::cat(coeffs, 1),
+            coeffs: bspline.join(coeffs),
             warped: Tensor::cat(warped, 1),
         });
         Ok((Tensor::cat(blocks, 1), step, next, own))

@@ -79,6 +79,44 @@ fn warp_is_linear_in_the_image(backend: Backend, precision: Precision) {
     }
 }
 
+/// Coefficients computed block by block and joined (`BSpline::join`, which keeps flex's
+/// channels-last layout) are the whole frame's, and warp to the same values.
+fn joined_coefficients_are_the_whole_frames(backend: Backend, precision: Precision) {
+    let device = device(backend, precision, false);
+    let mut rng = Rng(12);
+    for (h, w) in [(9, 11), (16, 13)] {
+        let grid = grid(&device, precision, (h, w));
+        let bspline = BSpline::new(&grid);
+        let c = 3 + 64;
+        let f: Tensor<4> = grid.tensor(rng.smooth_image(c, h, w), [1, c, h, w]);
+        let phi: Tensor<4> = grid.tensor(rng.smooth_deformation(1, h, w, 0.8), [1, 2, h, w]);
+        let whole = bspline.coefficients(f.clone());
+        let joined = bspline.join(vec![
+            bspline.coefficients(f.clone().narrow(1, 0, 3)),
+            bspline.coefficients(f.narrow(1, 3, 64)),
+        ]);
+        let tolerance = zero_tolerance(precision);
+        let what = format!("joined coefficients on {h}x{w}");
+        assert_close(
+            &what,
+            &values(joined.clone()),
+            &values(whole.clone()),
+            0.0,
+            tolerance,
+        );
+        for (start, len) in [(0, c), (3, 64), (0, 3)] {
+            let sample = |coeffs: &Tensor<4>| {
+                values(bspline.interpolate(coeffs.clone().narrow(1, start, len), phi.clone()))
+            };
+            let what = format!(
+                "warp of joined channels {start}..{} on {h}x{w}",
+                start + len
+            );
+            assert_close(&what, &sample(&joined), &sample(&whole), 0.0, tolerance);
+        }
+    }
+}
+
 fn density_vanishes_at_identity(backend: Backend, precision: Precision) {
     let device = device(backend, precision, true);
     let (h, w) = (9, 11);
@@ -229,6 +267,7 @@ macro_rules! in_both_precisions {
 in_both_precisions!(
     warp_of_identity_is_identity,
     warp_is_linear_in_the_image,
+    joined_coefficients_are_the_whole_frames,
     density_vanishes_at_identity,
     constant_path_has_zero_energy,
     identity_prolongates_to_identity,

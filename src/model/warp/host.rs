@@ -15,6 +15,7 @@
 //! Layouts are row-major and contiguous: coefficients `[N, C, H, W]`, deformations
 //! `[N, 2, H', W']`, warped maps `[N, C, H', W']`.
 
+use std::borrow::Cow;
 use std::ops::{Add, AddAssign, Div, Mul, Sub};
 
 use rayon::prelude::*;
@@ -355,6 +356,96 @@ fn prefilter_from<T: Real>(
         });
 }
 
+/// The forward prefilter `c = P f` of `n` images of `c` planar channels, written
+/// channels-last (`out[((b·H + i)·W + j)·C + ch]`): what the many-channel kernels read
+/// ([`reads_channels_last`]), so that they need not transpose the coefficients on every
+/// evaluation. Each row of an image is gathered from its `C` planes into a cache-resident
+/// `W × C` line and solved along `W` with the `C` channels as vector lanes; then the
+/// columns, along `H`, with whole rows of `W·C` values as lanes. Per value the same
+/// operations in the same order as [`prefilter`]: the same bits.
+pub fn prefilter_channels_last<T: Real>(
+    source: &[T],
+    out: &mut [T],
+    (n, c, height, width): (usize, usize, usize, usize),
+) {
+    let plane = height * width;
+    assert!(
+        source.len() == n * c * plane && out.len() == source.len(),
+        "prefilter: {} values for {n} × {c} planes of {height} × {width}, into {}",
+        source.len(),
+        out.len()
+    );
+    let along_w = Tridiagonal::mirrored(width, false).cast::<T>();
+    let along_h = Tridiagonal::mirrored(height, false).cast::<T>();
+    let line = width * c;
+    out.par_chunks_mut(line)
+        .enumerate()
+        .with_min_len((PIXELS_PER_TASK / width).max(1))
+        .for_each(|(row, values)| {
+            let (b, i) = (row / height, row % height);
+            for ch in 0..c {
+                let from = (b * c + ch) * plane + i * width;
+                for (j, &v) in source[from..from + width].iter().enumerate() {
+                    values[j * c + ch] = v;
+                }
+            }
+            solve_interleaved_simd(values, c, &along_w);
+        });
+    let block = 256.min(line);
+    let blocks = line.div_ceil(block);
+    let base = Shared(out.as_mut_ptr());
+    (0..n * blocks).into_par_iter().for_each(|task| {
+        let (b, k) = (task / blocks, task % blocks);
+        let cols = k * block..((k + 1) * block).min(line);
+        // SAFETY: task (b, k) owns columns `cols` of image b's rows; tasks differ in one or
+        // the other.
+        unsafe {
+            solve_columns(
+                Shared(base.get(b * plane * c)),
+                line,
+                height,
+                cols,
+                &along_h,
+            )
+        };
+    });
+}
+
+/// Solves the system along a line of `n` points stored `lanes` values apart (point-major),
+/// for each lane: the lanes are independent systems, solved side by side.
+#[inline(always)]
+fn solve_interleaved<T: Real>(
+    values: &mut [T],
+    lanes: usize,
+    (lower, pivot, upper): &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    let n = values.len() / lanes;
+    debug_assert!(lower.len() == n && pivot.len() == n && upper.len() == n);
+    for x in &mut values[..lanes] {
+        *x = *x * pivot[0];
+    }
+    for i in 1..n {
+        let (l, p) = (lower[i], pivot[i]);
+        let (before, here) = values.split_at_mut(i * lanes);
+        let above = &before[(i - 1) * lanes..];
+        for (x, &a) in here[..lanes].iter_mut().zip(above) {
+            *x = (*x - l * a) * p;
+        }
+    }
+    for i in (0..n - 1).rev() {
+        let u = upper[i];
+        let (here, after) = values.split_at_mut((i + 1) * lanes);
+        let here = &mut here[i * lanes..];
+        for (x, &b) in here.iter_mut().zip(&after[..lanes]) {
+            *x = *x - u * b;
+        }
+    }
+}
+
+simd_dispatch!(fn solve_interleaved_simd<T: Real>(
+    values: &mut [T], lanes: usize, factors: &(Vec<T>, Vec<T>, Vec<T>)
+) => solve_interleaved);
+
 // ---- the evaluation -----------------------------------------------------------------------
 
 /// Where a sample point falls along one axis: the 4 mirrored indices, the B-spline weights
@@ -576,6 +667,65 @@ const CHANNELS_LAST_FROM: usize = 8;
 /// 60 % of the evaluation's profile samples in a deep morph at 256²).
 const TILE: usize = 64;
 
+/// How a kernel's coefficients lie in memory.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Layout {
+    /// `[N, C, H, W]`, row-major.
+    Planar,
+    /// Channels-last, `stride` values from one pixel to the next (`≥ C`: the channels may
+    /// be a block of a wider table) and `H·W·stride` from one image to the next.
+    ChannelsLast {
+        /// Values per pixel in the buffer.
+        stride: usize,
+    },
+}
+
+/// Whether the kernels read `c` channels channels-last (and so whether
+/// [`prefilter_channels_last`] saves them a transpose per evaluation).
+pub fn reads_channels_last(c: usize) -> bool {
+    c >= CHANNELS_LAST_FROM
+}
+
+/// Checks that a channels-last table of `stride` values per pixel holds `d`'s coefficients.
+fn check_table<T>(values: &[T], stride: usize, d: &Dims) {
+    assert!(
+        reads_channels_last(d.c),
+        "a channels-last table of {} channels",
+        d.c
+    );
+    let plane = d.h * d.w;
+    assert!(
+        stride >= d.c && values.len() >= ((d.n - 1) * plane + plane - 1) * stride + d.c,
+        "channels-last table of {} values with stride {stride} for {d:?}",
+        values.len()
+    );
+}
+
+/// [`sample`] from channels-last coefficients (`layout` [`Layout::ChannelsLast`]): `values`
+/// starts at image 0's first channel.
+pub fn sample_from_table<T: Real>(values: &[T], stride: usize, phi: &[T], out: &mut [T], d: Dims) {
+    check_table(values, stride, &d);
+    assert_eq!(phi.len(), d.n * 2 * d.points(), "deformation");
+    assert_eq!(out.len(), d.n * d.c * d.points(), "samples");
+    sample_channels_last(values, Layout::ChannelsLast { stride }, phi, out, d);
+}
+
+/// [`sample_position_grad`] from channels-last coefficients, as [`sample_from_table`].
+pub fn position_grad_from_table<T: Real>(
+    values: &[T],
+    stride: usize,
+    phi: &[T],
+    grad: &[T],
+    out: &mut [T],
+    d: Dims,
+) {
+    check_table(values, stride, &d);
+    assert_eq!(phi.len(), d.n * 2 * d.points(), "deformation");
+    assert_eq!(grad.len(), d.n * d.c * d.points(), "output gradient");
+    assert_eq!(out.len(), phi.len(), "position gradient");
+    position_grad_channels_last(values, Layout::ChannelsLast { stride }, phi, grad, out, d);
+}
+
 /// One image's `C` planes of `plane` values, channels-last: `out[p·C + c] = planar[c·plane + p]`.
 fn channels_last<T: Real>(planar: &[T], c: usize, plane: usize) -> Vec<T> {
     let mut out = vec![T::default(); planar.len()];
@@ -627,19 +777,36 @@ fn dot<T: Real>(a: &[T], b: &[T]) -> T {
     sum
 }
 
+/// Image `b`'s coefficients as a channels-last table and its pixel stride: `values` itself
+/// when it is one, else transposed from planar.
+fn image_table<T: Real>(values: &[T], layout: Layout, d: Dims, b: usize) -> (Cow<'_, [T]>, usize) {
+    let plane = d.h * d.w;
+    match layout {
+        Layout::Planar => (
+            Cow::Owned(channels_last(
+                &values[b * d.c * plane..(b + 1) * d.c * plane],
+                d.c,
+                plane,
+            )),
+            d.c,
+        ),
+        Layout::ChannelsLast { stride } => (Cow::Borrowed(&values[b * plane * stride..]), stride),
+    }
+}
+
 /// [`sample`] for many channels.
-fn sample_channels_last<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
-    let (points, plane, c) = (d.points(), d.h * d.w, d.c);
+fn sample_channels_last<T: Real>(coeffs: &[T], layout: Layout, phi: &[T], out: &mut [T], d: Dims) {
+    let (points, c) = (d.points(), d.c);
     let tasks = points.div_ceil(PIXELS_PER_TASK);
     let out = Shared(out.as_mut_ptr());
     for b in 0..d.n {
-        let table = channels_last(&coeffs[b * c * plane..(b + 1) * c * plane], c, plane);
+        let (table, stride) = image_table(coeffs, layout, d, b);
         (0..tasks).into_par_iter().for_each(|chunk| {
             let mut tile = vec![T::default(); c * TILE];
             let end = ((chunk + 1) * PIXELS_PER_TASK).min(points);
             for first in (chunk * PIXELS_PER_TASK..end).step_by(TILE) {
                 let count = TILE.min(end - first);
-                evaluate_tile_simd(&table, phi, d, b, first..first + count, &mut tile);
+                evaluate_tile_simd(&table, stride, phi, d, b, first..first + count, &mut tile);
                 for ch in 0..c {
                     // SAFETY: points first..first + count of image b are this task's alone.
                     let run = unsafe {
@@ -662,6 +829,7 @@ fn sample_channels_last<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims
 #[inline(always)]
 fn evaluate_tile<T: Real>(
     table: &[T],
+    stride: usize,
     phi: &[T],
     d: Dims,
     b: usize,
@@ -674,7 +842,7 @@ fn evaluate_tile<T: Real>(
         let (offset, weight) = stencil::<T>(&rows, &cols, d.w);
         acc.fill(T::default());
         for k in 0..16 {
-            let run = &table[offset[k] * c..(offset[k] + 1) * c];
+            let run = &table[offset[k] * stride..offset[k] * stride + c];
             for (x, &v) in acc.iter_mut().zip(run) {
                 *x += weight[k] * v;
             }
@@ -683,7 +851,8 @@ fn evaluate_tile<T: Real>(
 }
 
 simd_dispatch!(fn evaluate_tile_simd<T: Real>(
-    table: &[T], phi: &[T], d: Dims, b: usize, points: std::ops::Range<usize>, tile: &mut [T]
+    table: &[T], stride: usize, phi: &[T], d: Dims, b: usize, points: std::ops::Range<usize>,
+    tile: &mut [T]
 ) => evaluate_tile);
 
 /// The position gradient at the points `points` of image `b` from the channels-last
@@ -691,6 +860,7 @@ simd_dispatch!(fn evaluate_tile_simd<T: Real>(
 #[inline(always)]
 fn position_grad_tile<T: Real>(
     table: &[T],
+    stride: usize,
     phi: &[T],
     g: &[T],
     out: Shared<T>,
@@ -706,7 +876,7 @@ fn position_grad_tile<T: Real>(
         for a in 0..4 {
             for k in 0..4 {
                 let at = rows.index[a] * d.w + cols.index[k];
-                let v = dot(gp, &table[at * c..(at + 1) * c]).to_f64();
+                let v = dot(gp, &table[at * stride..at * stride + c]).to_f64();
                 g0 += (rows.slope[a] * cols.weight[k]).to_f64() * v;
                 g1 += (rows.weight[a] * cols.slope[k]).to_f64() * v;
             }
@@ -722,27 +892,28 @@ fn position_grad_tile<T: Real>(
 }
 
 simd_dispatch!(fn position_grad_tile_simd<T: Real>(
-    table: &[T], phi: &[T], g: &[T], out: Shared<T>, d: Dims, b: usize,
+    table: &[T], stride: usize, phi: &[T], g: &[T], out: Shared<T>, d: Dims, b: usize,
     points: std::ops::Range<usize>
 ) => position_grad_tile);
 
 /// [`sample_position_grad`] for many channels.
 fn position_grad_channels_last<T: Real>(
     coeffs: &[T],
+    layout: Layout,
     phi: &[T],
     grad: &[T],
     out: &mut [T],
     d: Dims,
 ) {
-    let (points, plane, c) = (d.points(), d.h * d.w, d.c);
+    let (points, c) = (d.points(), d.c);
     let tasks = points.div_ceil(PIXELS_PER_TASK);
     let out = Shared(out.as_mut_ptr());
     for b in 0..d.n {
-        let table = channels_last(&coeffs[b * c * plane..(b + 1) * c * plane], c, plane);
+        let (table, stride) = image_table(coeffs, layout, d, b);
         let g = channels_last(&grad[b * c * points..(b + 1) * c * points], c, points);
         (0..tasks).into_par_iter().for_each(|chunk| {
             let range = chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(points);
-            position_grad_tile_simd(&table, phi, &g, out, d, b, range);
+            position_grad_tile_simd(&table, stride, phi, &g, out, d, b, range);
         });
     }
 }
@@ -793,7 +964,7 @@ fn sum4<T: Real>(a: &[T; 4], b: &[T; 4]) -> T {
 pub fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
     d.check(coeffs.len(), phi, out.len());
     if d.c >= CHANNELS_LAST_FROM {
-        return sample_channels_last(coeffs, phi, out, d);
+        return sample_channels_last(coeffs, Layout::Planar, phi, out, d);
     }
     let points = d.points();
     let tasks = points.div_ceil(PIXELS_PER_TASK);
@@ -844,7 +1015,7 @@ pub fn sample_position_grad<T: Real>(coeffs: &[T], phi: &[T], grad: &[T], out: &
     d.check(coeffs.len(), phi, grad.len());
     assert_eq!(out.len(), phi.len(), "position gradient");
     if d.c >= CHANNELS_LAST_FROM {
-        return position_grad_channels_last(coeffs, phi, grad, out, d);
+        return position_grad_channels_last(coeffs, Layout::Planar, phi, grad, out, d);
     }
     let points = d.points();
     let tasks = points.div_ceil(PIXELS_PER_TASK);
@@ -1107,6 +1278,67 @@ mod tests {
             w: 11,
             ho: 7,
             wo: 5,
+        }
+    }
+
+    /// The channels-last prefilter, and evaluations and position gradients read from its
+    /// table (whole, or a block of channels of it), give the planar path's values bit for
+    /// bit, in float32 where reordered arithmetic would show.
+    #[test]
+    fn channels_last_coefficients_are_the_planar_ones_bit_for_bit() {
+        // Two images of 21 channels (a block of 3 + a block of 18), 13 × 10: line groups
+        // that end inside an image, and column blocks of 256 values that end inside a row.
+        let (n, c, h, w) = (2, 21, 13, 10);
+        let (ho, wo) = (6, 7);
+        let f: Vec<f32> = ramp(n * c * h * w, 0.2).iter().map(|&v| v as f32).collect();
+        let mut planar = f.clone();
+        prefilter(&mut planar, h, w, false);
+        let mut table = vec![0.0f32; f.len()];
+        prefilter_channels_last(&f, &mut table, (n, c, h, w));
+        for b in 0..n {
+            let want = channels_last(&planar[b * c * h * w..(b + 1) * c * h * w], c, h * w);
+            assert_eq!(
+                &table[b * c * h * w..(b + 1) * c * h * w],
+                &want[..],
+                "image {b}"
+            );
+        }
+        let phi: Vec<f32> = (0..n * 2 * ho * wo)
+            .map(|i| ((i as f64 * 0.731).rem_euclid(14.0) - 1.5) as f32)
+            .collect();
+        for (start, len) in [(0, c), (3, c - 3), (1, CHANNELS_LAST_FROM)] {
+            let d = Dims {
+                n,
+                c: len,
+                h,
+                w,
+                ho,
+                wo,
+            };
+            // The planar coefficients of the block, contiguous.
+            let block: Vec<f32> = (0..n)
+                .flat_map(|b| {
+                    let at = (b * c + start) * h * w;
+                    planar[at..at + len * h * w].to_vec()
+                })
+                .collect();
+            let (mut want, mut got) = (
+                vec![0.0f32; n * len * ho * wo],
+                vec![1.0f32; n * len * ho * wo],
+            );
+            sample(&block, &phi, &mut want, d);
+            sample_from_table(&table[start..], c, &phi, &mut got, d);
+            assert_eq!(want, got, "evaluation of channels {start}..{}", start + len);
+            let grad: Vec<f32> = ramp(want.len(), 0.9).iter().map(|&v| v as f32).collect();
+            let (mut want, mut got) = (vec![0.0f32; phi.len()], vec![1.0f32; phi.len()]);
+            sample_position_grad(&block, &phi, &grad, &mut want, d);
+            position_grad_from_table(&table[start..], c, &phi, &grad, &mut got, d);
+            assert_eq!(
+                want,
+                got,
+                "position gradient of channels {start}..{}",
+                start + len
+            );
         }
     }
 

@@ -105,7 +105,7 @@ fn dims(coeffs: &[usize], phi: &[usize]) -> super::host::Dims {
 }
 
 #[cfg(feature = "flex")]
-mod flex {
+pub(super) mod flex {
     use burn::backend::Flex;
     use burn::backend::flex::FlexTensor;
     use burn::tensor::{DType, TensorData};
@@ -165,9 +165,16 @@ mod flex {
     impl Kernel for f32 {}
     impl Kernel for f64 {}
 
-    fn sample_typed<T: Kernel>(coeffs: &HostView, phi: &HostView, d: Dims) -> TensorData {
+    fn sample_typed<T: Kernel>(coeffs: &Coefficients, phi: &HostView, d: Dims) -> TensorData {
         let mut out = vec![T::default(); d.n * d.c * d.ho * d.wo];
-        host::sample(coeffs.values(), phi.values(), &mut out, d);
+        match coeffs {
+            Coefficients::Planar(c) => host::sample(c.values(), phi.values(), &mut out, d),
+            Coefficients::ChannelsLast { tensor, stride } => {
+                let start = tensor.layout().start_offset();
+                let values = &tensor.storage::<T>()[start..];
+                host::sample_from_table(values, *stride, phi.values(), &mut out, d);
+            }
+        }
         TensorData::new(out, [d.n, d.c, d.ho, d.wo])
     }
 
@@ -178,18 +185,92 @@ mod flex {
     }
 
     fn position_typed<T: Kernel>(
-        coeffs: &HostView,
+        coeffs: &Coefficients,
         phi: &HostView,
         grad: &HostView,
         d: Dims,
     ) -> TensorData {
         let mut out = vec![T::default(); d.n * 2 * d.ho * d.wo];
-        host::sample_position_grad(coeffs.values(), phi.values(), grad.values(), &mut out, d);
+        let (phi, grad) = (phi.values(), grad.values());
+        match coeffs {
+            Coefficients::Planar(c) => {
+                host::sample_position_grad(c.values(), phi, grad, &mut out, d);
+            }
+            Coefficients::ChannelsLast { tensor, stride } => {
+                let start = tensor.layout().start_offset();
+                let values = &tensor.storage::<T>()[start..];
+                host::position_grad_from_table(values, *stride, phi, grad, &mut out, d);
+            }
+        }
         TensorData::new(out, [d.n, 2, d.ho, d.wo])
+    }
+
+    /// [`host::prefilter_channels_last`] of planar `x`, as a `[N, C, H, W]` tensor whose
+    /// buffer is channels-last (a permuted view).
+    fn prefilter_channels_last<T: Kernel>(x: &HostView) -> FlexTensor {
+        let s = x.shape();
+        let (n, c, h, w) = (s[0], s[1], s[2], s[3]);
+        let mut out = vec![T::default(); n * c * h * w];
+        host::prefilter_channels_last(x.values::<T>(), &mut out, (n, c, h, w));
+        FlexTensor::from_data(TensorData::new(out, [n, h, w, c])).permute(&[0, 3, 1, 2])
+    }
+
+    /// Coefficients as the kernels read them: in place when they lie planar or
+    /// channels-last (a block of channels of a channels-last table included), else copied
+    /// planar.
+    enum Coefficients {
+        Planar(HostView),
+        ChannelsLast { tensor: FlexTensor, stride: usize },
+    }
+
+    impl Coefficients {
+        fn new(t: FlexTensor) -> Self {
+            match channels_last_stride(&t) {
+                Some(stride) => Self::ChannelsLast { tensor: t, stride },
+                None => Self::Planar(HostView::new(t)),
+            }
+        }
+
+        fn shape(&self) -> Vec<usize> {
+            match self {
+                Self::Planar(v) => v.shape(),
+                Self::ChannelsLast { tensor, .. } => tensor.layout().shape().to_vec(),
+            }
+        }
+
+        fn dtype(&self) -> DType {
+            match self {
+                Self::Planar(v) => v.dtype(),
+                Self::ChannelsLast { tensor, .. } => tensor.dtype(),
+            }
+        }
+    }
+
+    /// The pixel stride of a `[N, C, H, W]` tensor whose values lie channels-last in its
+    /// buffer (strides `[H·W·s, 1, W·s, s]`, `s ≥ C`), with enough channels that the kernels
+    /// read them so; `None` otherwise.
+    pub(super) fn channels_last_stride(t: &FlexTensor) -> Option<usize> {
+        let layout = t.layout();
+        let (shape, strides) = (layout.shape(), layout.strides());
+        if shape.num_dims() != 4 || !host::reads_channels_last(shape[1]) {
+            return None;
+        }
+        let (n, c, h, w) = (shape[0], shape[1], shape[2], shape[3]);
+        let s = usize::try_from(strides[3]).ok()?;
+        let fits = strides[1] == 1
+            && s >= c
+            && strides[2] == (w * s) as isize
+            && (n == 1 || strides[0] == (h * w * s) as isize);
+        fits.then_some(s)
     }
 
     impl SplineOps for Flex {
         fn spline_prefilter(x: FlexTensor, transpose: bool) -> FlexTensor {
+            let s = x.layout().shape().to_vec();
+            if !transpose && s.len() == 4 && host::reads_channels_last(s[1]) {
+                let x = HostView::new(x);
+                return typed!(x.dtype(), prefilter_channels_last(&x));
+            }
             if x.is_unique() {
                 // In place: nobody else holds the buffer.
                 let x = data(x);
@@ -200,7 +281,7 @@ mod flex {
         }
 
         fn spline_sample(coeffs: FlexTensor, phi: FlexTensor) -> FlexTensor {
-            let (coeffs, phi) = (HostView::new(coeffs), HostView::new(phi));
+            let (coeffs, phi) = (Coefficients::new(coeffs), HostView::new(phi));
             let d = dims(&coeffs.shape(), &phi.shape());
             FlexTensor::from_data(typed!(coeffs.dtype(), sample_typed(&coeffs, &phi, d)))
         }
@@ -223,7 +304,7 @@ mod flex {
             grad: FlexTensor,
         ) -> FlexTensor {
             let (coeffs, phi, grad) = (
-                HostView::new(coeffs),
+                Coefficients::new(coeffs),
                 HostView::new(phi),
                 HostView::new(grad),
             );
@@ -233,6 +314,44 @@ mod flex {
                 position_typed(&coeffs, &phi, &grad, d)
             ))
         }
+    }
+}
+
+#[cfg(all(test, feature = "flex"))]
+mod tests {
+    use burn::backend::Flex;
+    use burn::backend::flex::FlexTensor;
+    use burn::backend::ops::FloatTensorOps;
+    use burn::tensor::TensorData;
+
+    use super::SplineOps;
+    use super::flex::channels_last_stride;
+
+    fn tensor(c: usize) -> FlexTensor {
+        let values: Vec<f32> = (0..c * 30).map(|i| (i as f32 * 0.37).sin()).collect();
+        FlexTensor::from_data(TensorData::new(values, [1, c, 5, 6]))
+    }
+
+    /// The forward prefilter of many channels leaves them channels-last; joining an RGB block
+    /// and such a block as `BSpline::join` does keeps the whole frame so, and the kernels
+    /// read its many-channel blocks in place (few channels are copied planar).
+    #[test]
+    fn coefficients_stay_channels_last_through_a_join() {
+        let deep = Flex::spline_prefilter(tensor(64), false);
+        assert_eq!(channels_last_stride(&deep), Some(64));
+        assert_eq!(
+            channels_last_stride(&Flex::spline_prefilter(tensor(3), false)),
+            None
+        );
+        assert_eq!(
+            channels_last_stride(&Flex::spline_prefilter(tensor(64), true)),
+            None
+        );
+        let last = |t: FlexTensor| t.permute(&[0, 2, 3, 1]);
+        let joined = Flex::float_cat(vec![last(tensor(3)), last(deep)], 3).permute(&[0, 3, 1, 2]);
+        assert_eq!(channels_last_stride(&joined), Some(67));
+        assert_eq!(channels_last_stride(&joined.narrow(1, 3, 64)), Some(67));
+        assert_eq!(channels_last_stride(&joined.narrow(1, 0, 3)), None);
     }
 }
 
