@@ -184,7 +184,7 @@ mod tests {
         (224, 224, 15, 250, false, false, 155.8), // cat_lion
         (176, 256, 15, 250, false, false, 165.7), // motorcycle
         (128, 128, 15, 250, false, false, 103.1), // faces, the δ study
-        (64, 64, 15, 2, true, false, 340.2), // VGG19 read again after the solve
+        (64, 64, 15, 2, true, false, 340.2),      // VGG19 read again after the solve
         (128, 128, 15, 2, true, false, 486.5),
         (256, 256, 15, 2, true, false, 1480.7),
         (256, 256, 15, 4, true, false, 1550.8), // 2 levels

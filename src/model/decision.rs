@@ -38,6 +38,12 @@ pub trait DecisionOps: Backend {
         );
         Self::float_sum(Self::float_mul(a, b))
     }
+    /// `Σ (a − b)²` over every entry (shapes equal): the difference in the tensors' own
+    /// precision, as `a − b` would be, its square and the sum in float64.
+    fn decision_distance2(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+        let d = Self::float_cast(Self::float_sub(a, b), FloatDType::F64);
+        Self::float_sum(Self::float_mul(d.clone(), d))
+    }
 }
 
 #[cfg(feature = "ndarray")]
@@ -59,6 +65,20 @@ pub fn sum<const D: usize>(t: Tensor<D>) -> Tensor<1> {
 pub fn dot<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
     assert_eq!(a.dims(), b.dims(), "decision dot: shapes differ");
     Tensor::<1>::from_dispatch(Dispatch::decision_dot(
+        a.detach().into_dispatch(),
+        b.detach().into_dispatch(),
+    ))
+}
+
+/// `Σ (a − b)²`, `[1]`: [`sum_squares`] of `a − b` without the difference as a tensor (a
+/// fresh frame per backtracking trial), the same value bit for bit.
+///
+/// # Panics
+///
+/// If the shapes differ.
+pub fn distance2<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
+    assert_eq!(a.dims(), b.dims(), "decision distance: shapes differ");
+    Tensor::<1>::from_dispatch(Dispatch::decision_distance2(
         a.detach().into_dispatch(),
         b.detach().into_dispatch(),
     ))
@@ -118,6 +138,20 @@ mod flex {
         }
     }
 
+    fn distance2(a: &HostView, b: &HostView) -> f64 {
+        match a.dtype() {
+            DType::F32 => reduce(a.values::<f32>(), b.values::<f32>(), |x, y| {
+                let d = f64::from(x - y);
+                d * d
+            }),
+            DType::F64 => reduce(a.values::<f64>(), b.values::<f64>(), |x, y| {
+                let d = x - y;
+                d * d
+            }),
+            other => panic!("decision sums read float32 or float64, not {other:?}"),
+        }
+    }
+
     fn scalar(v: f64) -> FlexTensor {
         FlexTensor::from_data(TensorData::new(vec![v], [1]))
     }
@@ -137,6 +171,12 @@ mod flex {
             let (a, b) = (HostView::new(a), HostView::new(b));
             assert_eq!(a.dtype(), b.dtype(), "decision dot: dtypes differ");
             scalar(dot(&a, &b))
+        }
+
+        fn decision_distance2(a: FlexTensor, b: FlexTensor) -> FlexTensor {
+            let (a, b) = (HostView::new(a), HostView::new(b));
+            assert_eq!(a.dtype(), b.dtype(), "decision distance: dtypes differ");
+            scalar(distance2(&a, &b))
         }
     }
 }
@@ -165,6 +205,16 @@ mod autodiff {
             let (a, _) = a.into_parts();
             let (b, _) = b.into_parts();
             FloatTensor::<Self>::new(B::decision_dot(a, b))
+        }
+
+        fn decision_distance2(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
+            assert!(
+                !a.is_tracked() && !b.is_tracked(),
+                "a decision sum is not differentiable"
+            );
+            let (a, _) = a.into_parts();
+            let (b, _) = b.into_parts();
+            FloatTensor::<Self>::new(B::decision_distance2(a, b))
         }
     }
 }

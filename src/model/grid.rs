@@ -118,6 +118,14 @@ impl Grid {
         }
     }
 
+    /// [`decision_norm2`](Self::decision_norm2) of `a − b`, without `a − b` as a tensor.
+    pub fn decision_distance2<const D: usize>(&self, a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
+        match self.accumulation() {
+            Accumulation::Float64 => decision::distance2(a, b),
+            Accumulation::Float32 => (a.detach() - b.detach()).square().sum(),
+        }
+    }
+
     /// [`decision_sum`](Self::decision_sum) of `t²`: `‖t‖²`.
     pub fn decision_norm2<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
         match self.accumulation() {

@@ -405,7 +405,6 @@ impl DeformationProblem<'_> {
     fn local_energy_of(&self, phi: Tensor<4>, warped: Tensor<4>) -> LocalEnergy {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
-        let residual = warped - self.f_km1.clone();
         let data_scale = self.steps
             / (ipalm.energy.params().delta
                 * 2.0
@@ -413,7 +412,10 @@ impl DeformationProblem<'_> {
                 * grid.pixels() as f64);
         let v = read_scalars(
             grid,
-            vec![self.smooth_decision(phi), grid.decision_norm2(residual)],
+            vec![
+                self.smooth_decision(phi),
+                grid.decision_distance2(warped, self.f_km1.clone()),
+            ],
         );
         LocalEnergy {
             value: v[0] + v[1] * data_scale,
@@ -902,7 +904,7 @@ impl Ipalm {
                 let products = problem.products(candidate.clone());
                 let v = read_scalars(
                     &self.grid,
-                    problem.norms(&problem.residuals_of(candidate.clone(), &products)),
+                    problem.trial_norms(candidate.clone(), &products),
                 );
                 norms = (v[0], v[1]);
                 let q_new = problem.decision_of(norms);
@@ -1054,6 +1056,16 @@ impl FeatureProblem<'_> {
         vec![
             grid.decision_norm2(moved.clone()),
             grid.decision_norm2(fixed.clone()),
+        ]
+    }
+
+    /// [`norms`](Self::norms) of the residuals at `x` from its products, without the
+    /// residuals as tensors (two fresh frame blocks per trial): the same values.
+    fn trial_norms(&self, x: Tensor<4>, products: &FrameProducts) -> Vec<Tensor<1>> {
+        let grid = &self.ipalm.grid;
+        vec![
+            grid.decision_distance2(products.warped.clone(), self.prev.clone()),
+            grid.decision_distance2(self.next.clone(), x),
         ]
     }
 

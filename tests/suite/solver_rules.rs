@@ -412,6 +412,15 @@ fn decision_sums_are_float64_sums_of_the_float32_values(backend: Backend) {
     let plane = 16 * 24;
     let (a_block, b_block) = (&a[plane..4 * plane], &b[plane..4 * plane]);
     let read = |t: Tensor<1>| deepmorph::model::grid::to_host(t)[0];
+    // The distance is the norm of the float32 difference, bit for bit: the kernel forms
+    // `a − b` in float32 as the tensor op would.
+    let distance = read(grid.decision_distance2(block(&wide), block(&other)));
+    let of_difference = read(grid.decision_norm2(block(&wide) - block(&other)));
+    assert_eq!(
+        distance.to_bits(),
+        of_difference.to_bits(),
+        "{backend:?} distance: {distance} vs {of_difference}"
+    );
     let cases = [
         (
             "sum",
@@ -427,6 +436,15 @@ fn decision_sums_are_float64_sums_of_the_float32_values(backend: Backend) {
             "dot of blocks",
             read(grid.decision_dot(block(&wide), block(&other))),
             a_block.iter().zip(b_block).map(|(x, y)| x * y).sum(),
+        ),
+        (
+            "distance of blocks",
+            distance,
+            a_block
+                .iter()
+                .zip(b_block)
+                .map(|(x, y)| f64::from((x - y) as f32).powi(2))
+                .sum(),
         ),
     ];
     for (what, got, want) in cases {
