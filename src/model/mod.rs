@@ -12,7 +12,6 @@
 //! - [`deformation`]: Jacobian and admissibility (SPEC §0, §2).
 //! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5).
 //! - [`params`]: the energy's parameters with SPEC §9's defaults.
-//! - [`pointwise`]: the inertial point and the gradient step of an iPALM step, fused.
 //! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6); [`slopes`]:
 //!   the linearisation's per-pixel moments over the channels, fused.
 //! - [`resample`]: bilinear resizing and prolongation between levels (SPEC §7).
@@ -30,7 +29,6 @@ pub(crate) mod host_view;
 pub mod inbetween;
 pub mod layout;
 pub mod params;
-pub mod pointwise;
 pub mod resample;
 pub mod separable;
 pub mod slopes;

@@ -18,7 +18,6 @@ use crate::error::{Error, Result};
 use crate::model::deformation::{admissible_each, jacobian};
 use crate::model::energy::data::data_term_from_residual;
 use crate::model::energy::regularizer::{regularizer, weighted_density};
-use crate::model::pointwise;
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{
     DeformationStep, FeatureStep, Ipalm, LevelState, SweepKind, SweepReport, read_scalars,
@@ -438,7 +437,7 @@ impl Ipalm {
         };
         let f_k = take(&state.f, 0);
         let f_tilde = if self.config.beta > 0.0 {
-            pointwise::extrapolate(f_k.clone(), take(&state.f_prev, 0), self.config.beta)
+            f_k.clone() + (f_k.clone() - take(&state.f_prev, 0)).mul_scalar(self.config.beta)
         } else {
             f_k.clone()
         };

@@ -21,7 +21,6 @@ use crate::model::grid::to_host;
 use crate::model::grid::{Accumulation, Grid};
 use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
-use crate::model::pointwise;
 use crate::model::sobel::Sobel;
 use crate::model::warp::Sampler;
 use crate::solver::backtracking::{Backtracking, Search, Trial};
@@ -847,7 +846,7 @@ impl Ipalm {
         let bspline = self.energy.bspline();
         let f_k = state.f[k].clone();
         let f_tilde = if self.config.beta > 0.0 {
-            pointwise::extrapolate(f_k, state.f_prev[k].clone(), self.config.beta)
+            f_k.clone() + (f_k.clone() - state.f_prev[k].clone()).mul_scalar(self.config.beta)
         } else {
             f_k
         };
@@ -901,7 +900,7 @@ impl Ipalm {
             // The residual norms of the last trial: the accepted one's once the search ends.
             let mut norms = (f64::NAN, f64::NAN);
             let search = bt.search(state.l_f[k - 1][b], |l| {
-                let candidate = pointwise::descend(x_tilde.clone(), grad.clone(), 1.0 / l);
+                let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
                 let products = problem.products(candidate.clone());
                 let v = read_scalars(
                     &self.grid,

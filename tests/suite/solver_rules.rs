@@ -457,61 +457,6 @@ fn decision_sums_are_float64_sums_of_the_float32_values(backend: Backend) {
     }
 }
 
-/// The fused inertial point and gradient step are the composed tensor ops bit for bit, on a
-/// plain tensor and on a channel block narrowed out of a larger one, in float32 and float64,
-/// untracked (the solver's use: the fused kernel) and tracked (recorded, with the same
-/// gradient as the composed form).
-fn pointwise_updates_are_the_composed_ops_bit_for_bit(backend: Backend) {
-    use deepmorph::model::pointwise::{descend, extrapolate};
-    for precision in [Precision::F32, Precision::F64] {
-        let device = device(backend, precision, true);
-        let grid = Grid::new(16, 24, &device, precision.dtype()).unwrap();
-        let host = |seed: f64| -> Vec<f64> {
-            (0..5 * 16 * 24)
-                .map(|i| (i as f64 * 0.618 + seed).sin() * 3.0)
-                .collect()
-        };
-        let t = |seed: f64| -> Tensor<4> { grid.tensor(host(seed), [1, 5, 16, 24]) };
-        let (x, y) = (t(0.2), t(1.3));
-        let block = |t: &Tensor<4>| t.clone().narrow(1, 1, 3);
-        let bits = |t: Tensor<4>| -> Vec<u64> {
-            deepmorph::model::grid::to_host(t)
-                .iter()
-                .map(|v| v.to_bits())
-                .collect()
-        };
-        let (beta, s) = (0.7, 1.0 / 3.7);
-        for (what, a, b) in [
-            ("whole", x.clone(), y.clone()),
-            ("block", block(&x), block(&y)),
-        ] {
-            let composed = a.clone() + (a.clone() - b.clone()).mul_scalar(beta);
-            assert_eq!(
-                bits(extrapolate(a.clone(), b.clone(), beta)),
-                bits(composed),
-                "{backend:?} {precision:?} {what}: extrapolate"
-            );
-            let composed = a.clone() - b.clone().mul_scalar(s);
-            assert_eq!(
-                bits(descend(a.clone(), b.clone(), s)),
-                bits(composed),
-                "{backend:?} {precision:?} {what}: descend"
-            );
-        }
-        // Tracked: recorded as the composed ops, so the gradient flows.
-        let leaf = x.clone().require_grad();
-        let grads = extrapolate(leaf.clone(), y.clone(), beta).sum().backward();
-        let g = deepmorph::model::grid::to_host(leaf.grad(&grads).expect("tracked").autodiff());
-        let want = f64::from((1.0 + beta) as f32);
-        assert!(
-            g.iter()
-                .all(|&v| (v - (1.0 + beta)).abs() < 1e-6 || v == want),
-            "{backend:?} {precision:?}: d/dx of x + β(x − y) is 1 + β, got {:?}",
-            &g[..3]
-        );
-    }
-}
-
 /// The energy after a sweep reuses the squared residuals the sweep's last steps evaluated
 /// (SPEC §10's value, `a_k` from the new frames): equal to evaluating every `D_k` again, which
 /// is a float64 sum of the float32 residuals, and to the float32 path energy up to its rounding;
@@ -686,7 +631,6 @@ on_each_cpu_backend!(
     a_carried_sweep_equals_a_fresh_one,
     the_energy_after_a_sweep_reuses_the_sweeps_residuals,
     decision_sums_are_float64_sums_of_the_float32_values,
-    pointwise_updates_are_the_composed_ops_bit_for_bit,
     a_level_stops_when_the_energy_stalls,
     an_overshooting_extrapolation_is_restarted_not_dropped,
     an_exhausted_step_keeps_the_estimate_it_started_from,
