@@ -13,7 +13,10 @@
 //!   axis where the point lies outside the clamp range.
 //!
 //! Layouts are row-major and contiguous: coefficients `[N, C, H, W]`, deformations
-//! `[N, 2, H', W']`, warped maps `[N, C, H', W']`.
+//! `[N, 2, H', W']`, warped maps `[N, C, H', W']`. Many channels ([`reads_channels_last`])
+//! are read channels-last; [`prefilter_channels_last`] writes coefficients so, and
+//! [`sample_from_table`] / [`position_grad_from_table`] read such a table in place, a block
+//! of its channels too ([`Layout`]), where the planar entry points transpose per call.
 
 use std::borrow::Cow;
 use std::ops::{Add, AddAssign, Div, Mul, Sub};

@@ -2,7 +2,10 @@
 //! `#[backend_extension]`): native kernels per backend and a hand-written backward
 //! registered with autodiff, so the solver still takes its gradients from `backward()`.
 //!
-//! - flex: the host kernels of [`super::host`] on the tensors' own buffers.
+//! - flex: the host kernels of [`super::host`] on the tensors' own buffers. The forward
+//!   prefilter of many channels returns its coefficients channels-last (a permuted view of
+//!   an `[N, H, W, C]` buffer), which the evaluation and the position gradient read in place;
+//!   any other op sees an ordinary `[N, C, H, W]` tensor.
 //! - wgpu: CubeCL kernels (`super::cube`).
 //! - autodiff: the prefilter's backward is `Pᵀ`; the evaluation's backward is the adjoint
 //!   scatter `B(φ)ᵀ g` for the coefficients and `Σ_c g_c ∂T_c/∂p` for `φ` (SPEC §1's `β'`,
