@@ -17,7 +17,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::Tensor;
 
-use crate::model::warp::host::{Real, Shared};
+use crate::model::warp::host::{Real, Shared, has_avx2, simd_dispatch};
 
 /// The fused moments' primitive (flex only: the other backends compose them).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
@@ -64,72 +64,130 @@ pub fn host_moments<T: Real>(
     assert_eq!(phi.len(), n * 2 * plane, "deformation");
     assert_eq!(out.len(), n * 5 * plane, "moments");
     let blocks = h.div_ceil(ROWS_PER_TASK);
-    let mirror = |i: isize, len: usize| -> usize {
-        let last = len as isize - 1;
-        (last - (i.abs() - last).abs()) as usize
-    };
-    let half = T::from_f64(0.5);
-    let quarter = T::from_f64(0.25);
-    let eighth = T::from_f64(0.125);
-    let two = T::from_f64(2.0);
     let out_ptr = Shared(out.as_mut_ptr());
     (0..n * blocks).into_par_iter().for_each(|task| {
         let (b, block) = (task / blocks, task % blocks);
         let rows = block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h);
         let count = rows.len();
-        // The task's rows of the five moments, accumulated over the channels.
-        let mut acc = vec![T::default(); 5 * count * w];
-        let mut s = [
-            vec![T::default(); w],
-            vec![T::default(); w],
-            vec![T::default(); w],
-        ];
-        let (mut vd, mut vs) = (vec![T::default(); w], vec![T::default(); w]);
+        // The task's rows of the five moments (`[row, moment, W]`), summed over the channels.
+        let mut acc = vec![T::default(); count * 5 * w];
+        let mut scratch = vec![T::default(); 5 * w];
         let phi0 = &phi[b * 2 * plane..b * 2 * plane + plane];
         let phi1 = &phi[b * 2 * plane + plane..(b + 1) * 2 * plane];
         for ch in 0..c {
             let at = (b * c + ch) * plane;
             let (tw, fp) = (&warped[at..at + plane], &prev[at..at + plane]);
+            fn line<T>(m: &[T], i: usize, w: usize) -> &[T] {
+                &m[i * w..(i + 1) * w]
+            }
             for (r, i) in rows.clone().enumerate() {
-                let neighbours = [mirror(i as isize - 1, h), i, mirror(i as isize + 1, h)];
-                for (line, &row) in s.iter_mut().zip(&neighbours) {
-                    let (t, f) = (&tw[row * w..(row + 1) * w], &fp[row * w..(row + 1) * w]);
-                    for ((x, &a), &bb) in line.iter_mut().zip(t).zip(f) {
-                        *x = a + bb;
-                    }
-                }
-                // Along rows first: the central difference (halved below) and the (1, 2, 1)
-                // smoothing of the three lines.
-                for j in 0..w {
-                    vd[j] = s[2][j] - s[0][j];
-                    vs[j] = (s[0][j] + two * s[1][j] + s[2][j]) * quarter;
-                }
-                let (t, f) = (&tw[i * w..(i + 1) * w], &fp[i * w..(i + 1) * w]);
-                let (p0, p1) = (&phi0[i * w..(i + 1) * w], &phi1[i * w..(i + 1) * w]);
-                let row_acc = |m: usize| m * count * w + r * w;
-                for j in 0..w {
-                    let (jm, jp) = (mirror(j as isize - 1, w), mirror(j as isize + 1, w));
-                    // Λ = ½ ∇s: ∂₀ = (vd[j−1] + 2 vd[j] + vd[j+1]) / 8 (vd is twice the
-                    // central difference), ∂₁ = (vs[j+1] − vs[j−1]) / 2.
-                    let l0 = half * ((vd[jm] + two * vd[j] + vd[jp]) * eighth);
-                    let l1 = half * ((vs[jp] - vs[jm]) * half);
-                    let q = l0 * p0[j] + l1 * p1[j] - (t[j] - f[j]);
-                    acc[row_acc(0) + j] += l0 * l0;
-                    acc[row_acc(1) + j] += l0 * l1;
-                    acc[row_acc(2) + j] += l1 * l1;
-                    acc[row_acc(3) + j] += l0 * q;
-                    acc[row_acc(4) + j] += l1 * q;
-                }
+                let near = [mirror(i as isize - 1, h), i, mirror(i as isize + 1, h)];
+                moments_row_simd(
+                    near.map(|i| line(tw, i, w)),
+                    near.map(|i| line(fp, i, w)),
+                    line(phi0, i, w),
+                    line(phi1, i, w),
+                    &mut scratch,
+                    &mut acc[r * 5 * w..(r + 1) * 5 * w],
+                );
             }
         }
         for m in 0..5 {
-            let first = (b * 5 + m) * plane + rows.start * w;
-            // SAFETY: rows `rows` of image b are this task's alone, in each moment's plane.
-            let dst = unsafe { std::slice::from_raw_parts_mut(out_ptr.get(first), count * w) };
-            dst.copy_from_slice(&acc[m * count * w..(m + 1) * count * w]);
+            for (r, i) in rows.clone().enumerate() {
+                let first = (b * 5 + m) * plane + i * w;
+                // SAFETY: rows `rows` of image b are this task's alone, in each moment's plane.
+                let dst = unsafe { std::slice::from_raw_parts_mut(out_ptr.get(first), w) };
+                dst.copy_from_slice(&acc[(r * 5 + m) * w..(r * 5 + m + 1) * w]);
+            }
         }
     });
 }
+
+/// The index `i` of a line of `len` samples reflected at both ends (whole-sample mirror).
+fn mirror(i: isize, len: usize) -> usize {
+    let last = len as isize - 1;
+    (last - (i.abs() - last).abs()) as usize
+}
+
+/// Adds one row's `Λ Λᵀ` and `Λ q` of one channel into `acc` (`[5, W]`), from the rows
+/// above, at and below it of `T` and `f_{k−1}` (mirrored at the image's edges). `scratch`
+/// holds `5 W` values. The interior columns run without the mirror's index arithmetic, so
+/// they vectorise; every value takes the same operations in the same order as at the edges.
+#[inline(always)]
+fn moments_row<T: Real>(
+    t: [&[T]; 3],
+    f: [&[T]; 3],
+    p0: &[T],
+    p1: &[T],
+    scratch: &mut [T],
+    acc: &mut [T],
+) {
+    let w = p0.len();
+    let (half, quarter, eighth, two) = (
+        T::from_f64(0.5),
+        T::from_f64(0.25),
+        T::from_f64(0.125),
+        T::from_f64(2.0),
+    );
+    let (s, rest) = scratch[..5 * w].split_at_mut(3 * w);
+    let (vd, vs) = rest.split_at_mut(w);
+    for (l, line) in s.chunks_exact_mut(w).enumerate() {
+        for ((x, &a), &b) in line.iter_mut().zip(t[l]).zip(f[l]) {
+            *x = a + b;
+        }
+    }
+    // Along rows first: the central difference (halved below) and the (1, 2, 1) smoothing
+    // of the three lines.
+    let (s0, s1, s2) = (&s[..w], &s[w..2 * w], &s[2 * w..]);
+    for j in 0..w {
+        vd[j] = s2[j] - s0[j];
+        vs[j] = (s0[j] + two * s1[j] + s2[j]) * quarter;
+    }
+    let (t, f) = (t[1], f[1]);
+    let [a0, a1, a2, a3, a4]: [&mut [T]; 5] = {
+        let mut rows = acc[..5 * w].chunks_exact_mut(w);
+        std::array::from_fn(|_| rows.next().expect("five accumulator rows"))
+    };
+    // Λ = ½ ∇s: ∂₀ = (vd[j−1] + 2 vd[j] + vd[j+1]) / 8 (vd is twice the central
+    // difference), ∂₁ = (vs[j+1] − vs[j−1]) / 2.
+    // Interior: every slice cut to the same length up front, so the loop has no bounds
+    // checks left to stop it vectorising.
+    let n = w - 2;
+    let (dm, dc, dp) = (&vd[..n], &vd[1..n + 1], &vd[2..n + 2]);
+    let (sm, sp) = (&vs[..n], &vs[2..n + 2]);
+    let (tc, fc, q0, q1) = (&t[1..n + 1], &f[1..n + 1], &p0[1..n + 1], &p1[1..n + 1]);
+    {
+        let (b0, b1, b2) = (&mut a0[1..n + 1], &mut a1[1..n + 1], &mut a2[1..n + 1]);
+        let (b3, b4) = (&mut a3[1..n + 1], &mut a4[1..n + 1]);
+        for j in 0..n {
+            let l0 = half * ((dm[j] + two * dc[j] + dp[j]) * eighth);
+            let l1 = half * ((sp[j] - sm[j]) * half);
+            let q = l0 * q0[j] + l1 * q1[j] - (tc[j] - fc[j]);
+            b0[j] += l0 * l0;
+            b1[j] += l0 * l1;
+            b2[j] += l1 * l1;
+            b3[j] += l0 * q;
+            b4[j] += l1 * q;
+        }
+    }
+    // The two edge columns, mirrored.
+    let mut point = |j: usize, jm: usize, jp: usize| {
+        let l0 = half * ((vd[jm] + two * vd[j] + vd[jp]) * eighth);
+        let l1 = half * ((vs[jp] - vs[jm]) * half);
+        let q = l0 * p0[j] + l1 * p1[j] - (t[j] - f[j]);
+        a0[j] += l0 * l0;
+        a1[j] += l0 * l1;
+        a2[j] += l1 * l1;
+        a3[j] += l0 * q;
+        a4[j] += l1 * q;
+    };
+    point(0, 1, 1);
+    point(w - 1, w - 2, w - 2);
+}
+
+simd_dispatch!(fn moments_row_simd<T: Real>(
+    t: [&[T]; 3], f: [&[T]; 3], p0: &[T], p1: &[T], scratch: &mut [T], acc: &mut [T]
+) => moments_row);
 
 #[cfg(feature = "flex")]
 mod flex {
@@ -249,8 +307,15 @@ mod tests {
 
     #[test]
     fn the_fused_moments_are_spec_sobel_slopes_summed_over_channels() {
-        // Heights and widths on both sides of the task's row block, including 2.
-        for dims in [[2, 3, 5, 6], [1, 4, 9, 2], [1, 1, 2, 7]] {
+        // Heights and widths on both sides of the task's row block, including 2; widths
+        // with no, one and many (a vector body and its tail) interior columns.
+        for dims in [
+            [2, 3, 5, 6],
+            [1, 4, 9, 2],
+            [1, 1, 2, 7],
+            [1, 2, 3, 3],
+            [1, 3, 6, 41],
+        ] {
             let [n, c, h, w] = dims;
             let value = |i: usize, seed: f64| (i as f64 * 0.731 + seed).sin();
             let warped: Vec<f64> = (0..n * c * h * w).map(|i| value(i, 0.3)).collect();

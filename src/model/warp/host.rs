@@ -345,7 +345,20 @@ fn prefilter_from<T: Real>(
         });
     // Columns in blocks that keep a task's rows in cache and give every thread work even for
     // one plane.
-    let block = 64.min(width);
+    solve_all_columns(data, width, height, 64, &along_h);
+}
+
+/// Solves the system along the first axis of every `[height, width]` plane of `data`, in
+/// parallel tasks of `block` columns of one plane each.
+fn solve_all_columns<T: Real>(
+    data: &mut [T],
+    width: usize,
+    height: usize,
+    block: usize,
+    along_h: &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    let plane = height * width;
+    let block = block.min(width);
     let blocks = width.div_ceil(block);
     let base = Shared(data.as_mut_ptr());
     (0..data.len() / plane * blocks)
@@ -355,7 +368,7 @@ fn prefilter_from<T: Real>(
             let cols = b * block..((b + 1) * block).min(width);
             // SAFETY: task (p, b) owns columns `cols` of plane `p`; tasks differ in one or the
             // other.
-            unsafe { solve_columns(Shared(base.get(p * plane)), width, height, cols, &along_h) };
+            unsafe { solve_columns(Shared(base.get(p * plane)), width, height, cols, along_h) };
         });
 }
 
@@ -394,24 +407,8 @@ pub fn prefilter_channels_last<T: Real>(
             }
             solve_interleaved_simd(values, c, &along_w);
         });
-    let block = 256.min(line);
-    let blocks = line.div_ceil(block);
-    let base = Shared(out.as_mut_ptr());
-    (0..n * blocks).into_par_iter().for_each(|task| {
-        let (b, k) = (task / blocks, task % blocks);
-        let cols = k * block..((k + 1) * block).min(line);
-        // SAFETY: task (b, k) owns columns `cols` of image b's rows; tasks differ in one or
-        // the other.
-        unsafe {
-            solve_columns(
-                Shared(base.get(b * plane * c)),
-                line,
-                height,
-                cols,
-                &along_h,
-            )
-        };
-    });
+    // An image is one `[H, W·C]` plane here; wider blocks, as a row holds `C` times more.
+    solve_all_columns(out, line, height, 256, &along_h);
 }
 
 /// Solves the system along a line of `n` points stored `lanes` values apart (point-major),
