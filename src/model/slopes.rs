@@ -123,12 +123,7 @@ fn moments_row<T: Real>(
     acc: &mut [T],
 ) {
     let w = p0.len();
-    let (half, quarter, eighth, two) = (
-        T::from_f64(0.5),
-        T::from_f64(0.25),
-        T::from_f64(0.125),
-        T::from_f64(2.0),
-    );
+    let (quarter, two) = (T::from_f64(0.25), T::from_f64(2.0));
     let (s, rest) = scratch[..5 * w].split_at_mut(3 * w);
     let (vd, vs) = rest.split_at_mut(w);
     for (l, line) in s.chunks_exact_mut(w).enumerate() {
@@ -148,9 +143,7 @@ fn moments_row<T: Real>(
         let mut rows = acc[..5 * w].chunks_exact_mut(w);
         std::array::from_fn(|_| rows.next().expect("five accumulator rows"))
     };
-    // Λ = ½ ∇s: ∂₀ = (vd[j−1] + 2 vd[j] + vd[j+1]) / 8 (vd is twice the central
-    // difference), ∂₁ = (vs[j+1] − vs[j−1]) / 2.
-    // Interior: every slice cut to the same length up front, so the loop has no bounds
+    // Interior ([`slopes_at`]): every slice cut to the same length up front, so the loop has no bounds
     // checks left to stop it vectorising.
     let n = w - 2;
     let (dm, dc, dp) = (&vd[..n], &vd[1..n + 1], &vd[2..n + 2]);
@@ -160,9 +153,12 @@ fn moments_row<T: Real>(
         let (b0, b1, b2) = (&mut a0[1..n + 1], &mut a1[1..n + 1], &mut a2[1..n + 1]);
         let (b3, b4) = (&mut a3[1..n + 1], &mut a4[1..n + 1]);
         for j in 0..n {
-            let l0 = half * ((dm[j] + two * dc[j] + dp[j]) * eighth);
-            let l1 = half * ((sp[j] - sm[j]) * half);
-            let q = l0 * q0[j] + l1 * q1[j] - (tc[j] - fc[j]);
+            let [l0, l1, q] = slopes_at(
+                [dm[j], dc[j], dp[j]],
+                [sm[j], sp[j]],
+                [q0[j], q1[j]],
+                tc[j] - fc[j],
+            );
             b0[j] += l0 * l0;
             b1[j] += l0 * l1;
             b2[j] += l1 * l1;
@@ -172,9 +168,12 @@ fn moments_row<T: Real>(
     }
     // The two edge columns, mirrored.
     let mut point = |j: usize, jm: usize, jp: usize| {
-        let l0 = half * ((vd[jm] + two * vd[j] + vd[jp]) * eighth);
-        let l1 = half * ((vs[jp] - vs[jm]) * half);
-        let q = l0 * p0[j] + l1 * p1[j] - (t[j] - f[j]);
+        let [l0, l1, q] = slopes_at(
+            [vd[jm], vd[j], vd[jp]],
+            [vs[jm], vs[jp]],
+            [p0[j], p1[j]],
+            t[j] - f[j],
+        );
         a0[j] += l0 * l0;
         a1[j] += l0 * l1;
         a2[j] += l1 * l1;
@@ -183,6 +182,17 @@ fn moments_row<T: Real>(
     };
     point(0, 1, 1);
     point(w - 1, w - 2, w - 2);
+}
+
+/// `[Λ₀, Λ₁, q]` at a column from `vd` at `j − 1, j, j + 1`, `vs` at `j − 1, j + 1`, `φ̃`
+/// and the residual `T − f_{k−1}`: Λ = ½ ∇s, ∂₀ = (vd[j−1] + 2 vd[j] + vd[j+1]) / 8 (vd is
+/// twice the central difference), ∂₁ = (vs[j+1] − vs[j−1]) / 2.
+#[inline(always)]
+fn slopes_at<T: Real>(vd: [T; 3], vs: [T; 2], phi: [T; 2], residual: T) -> [T; 3] {
+    let (half, eighth, two) = (T::from_f64(0.5), T::from_f64(0.125), T::from_f64(2.0));
+    let l0 = half * ((vd[0] + two * vd[1] + vd[2]) * eighth);
+    let l1 = half * ((vs[1] - vs[0]) * half);
+    [l0, l1, l0 * phi[0] + l1 * phi[1] - residual]
 }
 
 simd_dispatch!(fn moments_row_simd<T: Real>(

@@ -57,11 +57,27 @@ pub trait Real:
     /// `src` and `dst` are valid for their 8 rows of 8 values and do not overlap.
     #[inline(always)]
     unsafe fn transpose8(src: *const Self, src_stride: usize, dst: *mut Self, dst_stride: usize) {
-        for i in 0..8 {
-            for j in 0..8 {
-                // SAFETY: the caller's promise.
-                unsafe { *dst.add(j * dst_stride + i) = *src.add(i * src_stride + j) };
-            }
+        // SAFETY: the caller's promise.
+        unsafe { transpose8_scalar(src, src_stride, dst, dst_stride) }
+    }
+}
+
+/// [`Real::transpose8`] one value at a time.
+///
+/// # Safety
+///
+/// As [`Real::transpose8`].
+#[inline(always)]
+unsafe fn transpose8_scalar<T: Copy>(
+    src: *const T,
+    src_stride: usize,
+    dst: *mut T,
+    dst_stride: usize,
+) {
+    for i in 0..8 {
+        for j in 0..8 {
+            // SAFETY: the caller's promise.
+            unsafe { *dst.add(j * dst_stride + i) = *src.add(i * src_stride + j) };
         }
     }
 }
@@ -92,12 +108,8 @@ impl Real for f32 {
             // SAFETY: the CPU has AVX2; the pointers are the caller's promise.
             return unsafe { transpose8_avx(src, src_stride, dst, dst_stride) };
         }
-        for i in 0..8 {
-            for j in 0..8 {
-                // SAFETY: the caller's promise.
-                unsafe { *dst.add(j * dst_stride + i) = *src.add(i * src_stride + j) };
-            }
-        }
+        // SAFETY: the caller's promise.
+        unsafe { transpose8_scalar(src, src_stride, dst, dst_stride) }
     }
 }
 
