@@ -350,6 +350,43 @@ fn solve_lines<T: Real>(
     }
 }
 
+/// The forward elimination of step `i` of the system along a line, on a whole row of lanes
+/// at once (lane by lane the Thomas recurrence): `here` is row `i`, `above` row `i − 1`
+/// already eliminated (`None` for `i = 0`).
+#[inline(always)]
+fn eliminate<T: Real>(
+    here: &mut [T],
+    above: Option<&[T]>,
+    i: usize,
+    (lower, pivot, _): &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    if let Some(above) = above {
+        let (l, p) = (lower[i], pivot[i]);
+        for (x, &a) in here.iter_mut().zip(above) {
+            *x = (*x - l * a) * p;
+        }
+    } else {
+        for x in here.iter_mut() {
+            *x = *x * pivot[0];
+        }
+    }
+}
+
+/// The back substitution of step `i` (after [`eliminate`] of every step): `below` is row
+/// `i + 1`, already solved.
+#[inline(always)]
+fn substitute<T: Real>(
+    here: &mut [T],
+    below: &[T],
+    i: usize,
+    (_, _, upper): &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    let u = upper[i];
+    for (x, &b) in here.iter_mut().zip(below) {
+        *x = *x - u * b;
+    }
+}
+
 /// Solves the system along the first axis of a `[rows, width]` block of columns `cols` of a
 /// plane, one whole row segment at a time (unit stride, vectorisable).
 ///
@@ -361,28 +398,17 @@ unsafe fn solve_columns<T: Real>(
     width: usize,
     rows: usize,
     cols: std::ops::Range<usize>,
-    (lower, pivot, upper): &(Vec<T>, Vec<T>, Vec<T>),
+    factors: &(Vec<T>, Vec<T>, Vec<T>),
 ) {
     let row = |i: usize| -> &mut [T] {
         // SAFETY: the caller owns columns `cols` of every row.
         unsafe { std::slice::from_raw_parts_mut(plane.get(i * width + cols.start), cols.len()) }
     };
-    for x in row(0).iter_mut() {
-        *x = *x * pivot[0];
-    }
-    for i in 1..rows {
-        let (l, p) = (lower[i], pivot[i]);
-        let (above, here) = (row(i - 1), row(i));
-        for (x, &a) in here.iter_mut().zip(above.iter()) {
-            *x = (*x - l * a) * p;
-        }
+    for i in 0..rows {
+        eliminate(row(i), (i > 0).then(|| &*row(i - 1)), i, factors);
     }
     for i in (0..rows - 1).rev() {
-        let u = upper[i];
-        let (here, below) = (row(i), row(i + 1));
-        for (x, &b) in here.iter_mut().zip(below.iter()) {
-            *x = *x - u * b;
-        }
+        substitute(row(i), row(i + 1), i, factors);
     }
 }
 
@@ -421,6 +447,22 @@ fn prefilter_from<T: Real>(
     assert_eq!(data.len() % plane, 0, "prefilter: data is not whole planes");
     let along_w = Tridiagonal::mirrored(width, transpose).cast::<T>();
     let along_h = Tridiagonal::mirrored(height, transpose).cast::<T>();
+    if data.len() / plane >= rayon::current_num_threads() {
+        // A task per plane: its column pass finds the plane in cache where the row pass left
+        // it, instead of a second trip through memory (measured: −25 % for 1005 planes of
+        // 256², −35 % for 45).
+        data.par_chunks_mut(plane)
+            .enumerate()
+            .for_each(|(p, values)| {
+                if let Some(source) = source {
+                    values.copy_from_slice(&source[p * plane..(p + 1) * plane]);
+                }
+                solve_plane_simd(values, width, &along_w, &along_h);
+            });
+        return;
+    }
+    // Fewer planes than threads: rows, then columns, each pass split finely enough that
+    // every thread has work even for one plane.
     let group = width * LINES_TOGETHER;
     data.par_chunks_mut(group)
         .enumerate()
@@ -431,10 +473,28 @@ fn prefilter_from<T: Real>(
             }
             solve_lines(lines, width, &along_w)
         });
-    // Columns in blocks that keep a task's rows in cache and give every thread work even for
-    // one plane.
+    // Columns in blocks that keep a task's rows in cache.
     solve_all_columns(data, width, height, 64, &along_h);
 }
+
+/// Solves the system along both axes of one `[height, width]` plane, in place.
+#[inline(always)]
+fn solve_plane<T: Real>(
+    plane: &mut [T],
+    width: usize,
+    along_w: &(Vec<T>, Vec<T>, Vec<T>),
+    along_h: &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    for lines in plane.chunks_mut(width * LINES_TOGETHER) {
+        solve_lines(lines, width, along_w);
+    }
+    solve_interleaved(plane, width, along_h);
+}
+
+simd_dispatch!(fn solve_plane_simd<T: Real>(
+    plane: &mut [T], width: usize,
+    along_w: &(Vec<T>, Vec<T>, Vec<T>), along_h: &(Vec<T>, Vec<T>, Vec<T>)
+) => solve_plane);
 
 /// Solves the system along the first axis of every `[height, width]` plane of `data`, in
 /// parallel tasks of `block` columns of one plane each.
@@ -482,51 +542,109 @@ pub fn prefilter_channels_last<T: Real>(
     let along_w = Tridiagonal::mirrored(width, false).cast::<T>();
     let along_h = Tridiagonal::mirrored(height, false).cast::<T>();
     let line = width * c;
+    if n >= rayon::current_num_threads() {
+        // A task per image, rows top to bottom: each row's elimination down the columns runs
+        // while the row is in cache from its solve along `W`, so the image passes through
+        // memory once before the back substitution instead of twice (measured: −40 % for 15
+        // images of 67 channels at 256²).
+        out.par_chunks_mut(height * line)
+            .enumerate()
+            .for_each(|(b, image)| {
+                let source = &source[b * c * plane..(b + 1) * c * plane];
+                image_channels_last_simd(source, image, (c, width), &along_w, &along_h);
+            });
+        return;
+    }
     out.par_chunks_mut(line)
         .enumerate()
         .with_min_len((PIXELS_PER_TASK / width).max(1))
         .for_each(|(row, values)| {
             let (b, i) = (row / height, row % height);
-            for ch in 0..c {
-                let from = (b * c + ch) * plane + i * width;
-                for (j, &v) in source[from..from + width].iter().enumerate() {
-                    values[j * c + ch] = v;
-                }
-            }
+            gather_row(&source[b * c * plane..(b + 1) * c * plane], values, i, c);
             solve_interleaved_simd(values, c, &along_w);
         });
     // An image is one `[H, W·C]` plane here; wider blocks, as a row holds `C` times more.
     solve_all_columns(out, line, height, 256, &along_h);
 }
 
+/// Row `i` of the `C` planes of `image` (`[C, H, W]`), channels-last into `values`
+/// (`[W, C]`).
+#[inline(always)]
+fn gather_row<T: Real>(image: &[T], values: &mut [T], i: usize, c: usize) {
+    let width = values.len() / c;
+    let plane = image.len() / c;
+    for ch in 0..c {
+        let from = ch * plane + i * width;
+        for (j, &v) in image[from..from + width].iter().enumerate() {
+            values[j * c + ch] = v;
+        }
+    }
+}
+
+/// The channels-last prefilter of one image (`source` `[C, H, W]` planar, `image`
+/// `[H, W, C]`): each row gathered, solved along `W`, and eliminated down the columns
+/// against the row above; then the back substitution up the columns.
+#[inline(always)]
+fn image_channels_last<T: Real>(
+    source: &[T],
+    image: &mut [T],
+    (c, width): (usize, usize),
+    along_w: &(Vec<T>, Vec<T>, Vec<T>),
+    along_h: &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    let line = width * c;
+    let height = image.len() / line;
+    for i in 0..height {
+        gather_row(source, &mut image[i * line..(i + 1) * line], i, c);
+        solve_interleaved(&mut image[i * line..(i + 1) * line], c, along_w);
+        eliminate_row(image, line, i, along_h);
+    }
+    for i in (0..height - 1).rev() {
+        substitute_row(image, line, i, along_h);
+    }
+}
+
+simd_dispatch!(fn image_channels_last_simd<T: Real>(
+    source: &[T], image: &mut [T], shape: (usize, usize),
+    along_w: &(Vec<T>, Vec<T>, Vec<T>), along_h: &(Vec<T>, Vec<T>, Vec<T>)
+) => image_channels_last);
+
+/// [`eliminate`] of row `i` of a `[n, lanes]` block.
+#[inline(always)]
+fn eliminate_row<T: Real>(
+    values: &mut [T],
+    lanes: usize,
+    i: usize,
+    factors: &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    let (before, here) = values.split_at_mut(i * lanes);
+    let above = i.checked_sub(1).map(|k| &before[k * lanes..]);
+    eliminate(&mut here[..lanes], above, i, factors);
+}
+
+/// [`substitute`] of row `i` of a `[n, lanes]` block.
+#[inline(always)]
+fn substitute_row<T: Real>(
+    values: &mut [T],
+    lanes: usize,
+    i: usize,
+    factors: &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    let (here, below) = values.split_at_mut((i + 1) * lanes);
+    substitute(&mut here[i * lanes..], &below[..lanes], i, factors);
+}
+
 /// Solves the system along a line of `n` points stored `lanes` values apart (point-major),
 /// for each lane: the lanes are independent systems, solved side by side.
 #[inline(always)]
-fn solve_interleaved<T: Real>(
-    values: &mut [T],
-    lanes: usize,
-    (lower, pivot, upper): &(Vec<T>, Vec<T>, Vec<T>),
-) {
+fn solve_interleaved<T: Real>(values: &mut [T], lanes: usize, factors: &(Vec<T>, Vec<T>, Vec<T>)) {
     let n = values.len() / lanes;
-    debug_assert!(lower.len() == n && pivot.len() == n && upper.len() == n);
-    for x in &mut values[..lanes] {
-        *x = *x * pivot[0];
-    }
-    for i in 1..n {
-        let (l, p) = (lower[i], pivot[i]);
-        let (before, here) = values.split_at_mut(i * lanes);
-        let above = &before[(i - 1) * lanes..];
-        for (x, &a) in here[..lanes].iter_mut().zip(above) {
-            *x = (*x - l * a) * p;
-        }
+    debug_assert!(factors.0.len() == n && factors.1.len() == n && factors.2.len() == n);
+    for i in 0..n {
+        eliminate_row(values, lanes, i, factors);
     }
     for i in (0..n - 1).rev() {
-        let u = upper[i];
-        let (here, after) = values.split_at_mut((i + 1) * lanes);
-        let here = &mut here[i * lanes..];
-        for (x, &b) in here.iter_mut().zip(&after[..lanes]) {
-            *x = *x - u * b;
-        }
+        substitute_row(values, lanes, i, factors);
     }
 }
 
@@ -1468,6 +1586,41 @@ mod tests {
             let mut into = vec![0.0; source.len()];
             prefilter_into(&source, &mut into, h, w, transpose);
             assert_eq!(in_place, into, "transpose {transpose}");
+        }
+    }
+
+    /// The prefilters run a task per plane (or image) when there are at least as many as
+    /// threads, else split rows and column blocks across threads: both orders of work give
+    /// the same bits, in float32 where reordered arithmetic would show.
+    #[test]
+    fn the_prefilters_split_of_work_does_not_change_a_bit() {
+        // Two images of 21 channels, 13 × 10 (line groups and column blocks that end inside
+        // a plane): one thread takes the per-plane path, 64 the split one.
+        let (n, c, h, w) = (2, 21, 13, 10);
+        let f: Vec<f32> = ramp(n * c * h * w, 0.6).iter().map(|&v| v as f32).collect();
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a thread pool");
+            pool.install(|| {
+                let mut planar = [f.clone(), f.clone()];
+                prefilter(&mut planar[0], h, w, false);
+                prefilter(&mut planar[1], h, w, true);
+                let mut into = vec![0.0f32; f.len()];
+                prefilter_into(&f, &mut into, h, w, true);
+                let mut table = vec![0.0f32; f.len()];
+                prefilter_channels_last(&f, &mut table, (n, c, h, w));
+                [planar[0].clone(), planar[1].clone(), into, table]
+            })
+        };
+        let (whole, split) = (run(1), run(64));
+        for (what, (a, b)) in ["P", "Pᵀ", "Pᵀ into", "channels-last P"]
+            .iter()
+            .zip(whole.iter().zip(&split))
+        {
+            let same = a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+            assert!(same, "{what}: a task per plane and split tasks differ");
         }
     }
 
