@@ -7,7 +7,11 @@
 //! - `step/BACKEND/C{c}/{n}`: value and autodiff gradient of one step of `E`,
 //!   `R[φ_k, a_k] + D[f_{k−1}, f_k, φ_k]`, w.r.t. `φ_k`, `f_{k−1}` and `f_k`;
 //! - `anisotropy/BACKEND/{n}`: `a[u]` of one RGB frame (SPEC §3), as each deformation step
-//!   computes it.
+//!   computes it;
+//! - `prefilter/{what}/C{c}x15/{n}`: the native CPU prefilter (the flex backend's kernel) of
+//!   the 15 frames of a `K = 15` sweep at once: `channels-last` is `P f` of the deep model's
+//!   67 channels as the warp reads them, `adjoint` `Pᵀ g` of 67 planar channels (the warp's
+//!   backward), `planar` `P f` of RGB.
 //!
 //! `C = 3` is the RGB model, `C = 67` the deep model's finest level (relu1_2 + η RGB). The
 //! deformation is a smooth admissible one with displacements of a few pixels, so the gathers
@@ -147,5 +151,33 @@ fn benches(c: &mut Criterion) {
     }
 }
 
-criterion_group!(energy, benches);
+/// Frames a `K = 15` sweep prefilters at once.
+const FRAMES: usize = 15;
+
+fn prefilter_benches(c: &mut Criterion) {
+    use deepmorph::model::warp::host;
+    let mut group = c.benchmark_group("prefilter");
+    group.sample_size(10).warm_up_time(Duration::from_secs(1));
+    for n in [128, 256] {
+        for (what, channels) in [("channels-last", 67), ("adjoint", 67), ("planar", 3)] {
+            let len = FRAMES * channels * n * n;
+            let source: Vec<f32> = (0..len)
+                .map(|i| ((i as f64 * 0.618).fract() - 0.5) as f32)
+                .collect();
+            let mut out = vec![0.0f32; len];
+            let id = BenchmarkId::new(format!("{what}/C{channels}x{FRAMES}"), n);
+            group.bench_with_input(id, &n, |b, _| {
+                b.iter(|| match what {
+                    "channels-last" => {
+                        host::prefilter_channels_last(&source, &mut out, (FRAMES, channels, n, n))
+                    }
+                    _ => host::prefilter_into(&source, &mut out, n, n, what == "adjoint"),
+                })
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(energy, benches, prefilter_benches);
 criterion_main!(energy);
