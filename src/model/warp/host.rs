@@ -1594,33 +1594,42 @@ mod tests {
     /// the same bits, in float32 where reordered arithmetic would show.
     #[test]
     fn the_prefilters_split_of_work_does_not_change_a_bit() {
-        // Two images of 21 channels, 13 × 10 (line groups and column blocks that end inside
-        // a plane): one thread takes the per-plane path, 64 the split one.
-        let (n, c, h, w) = (2, 21, 13, 10);
-        let f: Vec<f32> = ramp(n * c * h * w, 0.6).iter().map(|&v| v as f32).collect();
-        let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .expect("a thread pool");
-            pool.install(|| {
-                let mut planar = [f.clone(), f.clone()];
-                prefilter(&mut planar[0], h, w, false);
-                prefilter(&mut planar[1], h, w, true);
-                let mut into = vec![0.0f32; f.len()];
-                prefilter_into(&f, &mut into, h, w, true);
-                let mut table = vec![0.0f32; f.len()];
-                prefilter_channels_last(&f, &mut table, (n, c, h, w));
-                [planar[0].clone(), planar[1].clone(), into, table]
-            })
-        };
-        let (whole, split) = (run(1), run(64));
-        for (what, (a, b)) in ["P", "Pᵀ", "Pᵀ into", "channels-last P"]
-            .iter()
-            .zip(whole.iter().zip(&split))
-        {
-            let same = a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
-            assert!(same, "{what}: a task per plane and split tasks differ");
+        // Two images of 21 or 9 channels, 13 × 10 (line groups and column blocks that end
+        // inside a plane). One thread: a task per plane or image. 4 threads: the
+        // channels-last images in split rows and columns. 64 threads: the planar passes too.
+        let (n, h, w) = (2, 13, 10);
+        for c in [21, 9] {
+            let f: Vec<f32> = ramp(n * c * h * w, 0.6).iter().map(|&v| v as f32).collect();
+            let run = |threads: usize| {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .expect("a thread pool");
+                pool.install(|| {
+                    let mut planar = [f.clone(), f.clone()];
+                    prefilter(&mut planar[0], h, w, false);
+                    prefilter(&mut planar[1], h, w, true);
+                    let mut into = vec![0.0f32; f.len()];
+                    prefilter_into(&f, &mut into, h, w, true);
+                    let mut table = vec![0.0f32; f.len()];
+                    prefilter_channels_last(&f, &mut table, (n, c, h, w));
+                    [planar[0].clone(), planar[1].clone(), into, table]
+                })
+            };
+            let whole = run(1);
+            for threads in [4, 64] {
+                let split = run(threads);
+                for (what, (a, b)) in ["P", "Pᵀ", "Pᵀ into", "channels-last P"]
+                    .iter()
+                    .zip(whole.iter().zip(&split))
+                {
+                    let same = a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+                    assert!(
+                        same,
+                        "{what}, {c} channels, {threads} threads: not the same bits"
+                    );
+                }
+            }
         }
     }
 
