@@ -449,8 +449,8 @@ fn prefilter_from<T: Real>(
     let along_h = Tridiagonal::mirrored(height, transpose).cast::<T>();
     if data.len() / plane >= rayon::current_num_threads() {
         // A task per plane: its column pass finds the plane in cache where the row pass left
-        // it, instead of a second trip through memory (measured: −25 % for 1005 planes of
-        // 256², −35 % for 45).
+        // it, instead of a second trip through memory (measured, `energy` bench: −40 % for
+        // the 1005 planes of 15 frames of 67 channels at 256², −30 – −50 % for RGB's 45).
         data.par_chunks_mut(plane)
             .enumerate()
             .for_each(|(p, values)| {
