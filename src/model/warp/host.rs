@@ -525,8 +525,10 @@ fn solve_all_columns<T: Real>(
 /// ([`reads_channels_last`]), so that they need not transpose the coefficients on every
 /// evaluation. Each row of an image is gathered from its `C` planes into a cache-resident
 /// `W × C` line and solved along `W` with the `C` channels as vector lanes; then the
-/// columns, along `H`, with whole rows of `W·C` values as lanes. Per value the same
-/// operations in the same order as [`prefilter`]: the same bits.
+/// columns, along `H`, with whole rows of `W·C` values as lanes: a task per image, each row
+/// eliminated down the columns right after its solve along `W`, where there are at least as
+/// many images as threads; else rows and column blocks split across the threads. Per value
+/// the same operations in the same order as [`prefilter`]: the same bits.
 pub fn prefilter_channels_last<T: Real>(
     source: &[T],
     out: &mut [T],
@@ -1606,14 +1608,14 @@ mod tests {
                     .build()
                     .expect("a thread pool");
                 pool.install(|| {
-                    let mut planar = [f.clone(), f.clone()];
-                    prefilter(&mut planar[0], h, w, false);
-                    prefilter(&mut planar[1], h, w, true);
+                    let (mut forward, mut adjoint) = (f.clone(), f.clone());
+                    prefilter(&mut forward, h, w, false);
+                    prefilter(&mut adjoint, h, w, true);
                     let mut into = vec![0.0f32; f.len()];
                     prefilter_into(&f, &mut into, h, w, true);
                     let mut table = vec![0.0f32; f.len()];
                     prefilter_channels_last(&f, &mut table, (n, c, h, w));
-                    [planar[0].clone(), planar[1].clone(), into, table]
+                    [forward, adjoint, into, table]
                 })
             };
             let whole = run(1);
