@@ -16,7 +16,7 @@ use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
 use crate::model::deformation::{admissible_each, jacobian};
-use crate::model::energy::data::data_term_from_residual;
+use crate::model::energy::data::data_term_from_warped;
 use crate::model::energy::regularizer::{regularizer, weighted_density};
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{
@@ -462,10 +462,9 @@ impl Ipalm {
             let (start, len) = (block.channels.start, block.channels.len());
             let prev = before.clone().narrow(1, start, len);
             let next = next_warped.clone().narrow(1, start, len);
-            let residuals = |x: Tensor<4>| {
-                let warped = sampler.sample(bspline.coefficients(x.clone()));
-                (warped - prev.clone(), next.clone() - x)
-            };
+            let warp = |x: Tensor<4>| sampler.sample(bspline.coefficients(x));
+            let residuals =
+                |x: Tensor<4>, warped: Tensor<4>| (warped - prev.clone(), next.clone() - x);
             // The squared norms of each item's two residuals, `[n]` each, summed for decisions;
             // `Q` is their sum times `scale`, taken on the host.
             let norms_each = |(moved, fixed): &(Tensor<4>, Tensor<4>)| {
@@ -478,15 +477,15 @@ impl Ipalm {
             let mut norms = vec![(f64::NAN, f64::NAN); n];
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
             let leaf = x_tilde.clone().require_grad();
-            let r = residuals(leaf.clone());
+            let warped = warp(leaf.clone());
             // The Q_k are independent: the gradient of their sum is each one's gradient.
-            let q = (data_term_from_residual(r.0.clone(), c_tot)
-                + data_term_from_residual(r.1.clone(), c_tot))
+            let q = (data_term_from_warped(warped.clone(), prev.clone(), c_tot)
+                + data_term_from_warped(next.clone(), leaf.clone(), c_tot))
             .sum()
             .mul_scalar(steps / delta);
             let grads = q.backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let mut parts = norms_each(&r);
+            let mut parts = norms_each(&residuals(x_tilde.clone(), warped.detach()));
             parts.push(grid.decision_sum_each(grad.clone().square()));
             let v = read_scalars(grid, parts);
             let q_tilde: Vec<f64> = (0..n).map(|i| (v[i] + v[n + i]) * scale).collect();
@@ -509,7 +508,8 @@ impl Ipalm {
                 let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
                 let inverse = per_item(l.iter().map(|l| 1.0 / l).collect());
                 let candidates = x_tilde.clone() - grad.clone() * inverse;
-                let v = read_scalars(grid, norms_each(&residuals(candidates.clone())));
+                let warped = warp(candidates.clone());
+                let v = read_scalars(grid, norms_each(&residuals(candidates.clone(), warped)));
                 for i in 0..n {
                     let Some(l) = trial[i] else {
                         continue;

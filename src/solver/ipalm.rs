@@ -14,7 +14,7 @@ use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
 use crate::model::deformation::{is_admissible, jacobian};
-use crate::model::energy::data::data_term_from_residual;
+use crate::model::energy::data::data_term_from_warped;
 use crate::model::energy::path::{EnergyValue, PathEnergy, StepEnergies};
 use crate::model::energy::regularizer::{regularizer, weighted_density};
 use crate::model::grid::to_host;
@@ -881,10 +881,10 @@ impl Ipalm {
             };
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
             let leaf = x_tilde.clone().require_grad();
-            let residuals = problem.residuals(leaf.clone());
-            let grads = problem.differentiable(&residuals).backward();
+            let products = problem.products(leaf.clone());
+            let grads = problem.differentiable(leaf.clone(), &products).backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let mut parts = problem.norms(&residuals);
+            let mut parts = problem.norms(x_tilde.clone(), &products);
             parts.push(self.grid.decision_norm2(grad.clone()));
             let v = read_scalars(&self.grid, parts);
             let (q_tilde, grad_norm2) = (problem.decision_of((v[0], v[1])), v[2]);
@@ -902,10 +902,7 @@ impl Ipalm {
             let search = bt.search(state.l_f[k - 1][b], |l| {
                 let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
                 let products = problem.products(candidate.clone());
-                let v = read_scalars(
-                    &self.grid,
-                    problem.trial_norms(candidate.clone(), &products),
-                );
+                let v = read_scalars(&self.grid, problem.norms(candidate.clone(), &products));
                 norms = (v[0], v[1]);
                 let q_new = problem.decision_of(norms);
                 // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
@@ -1019,12 +1016,6 @@ struct FeatureProblem<'a> {
 }
 
 impl FeatureProblem<'_> {
-    /// The residuals of the two data terms: `T[x, φ_k] − f_{k−1}` and `T[f_{k+1}, φ_{k+1}] − x`.
-    fn residuals(&self, x: Tensor<4>) -> (Tensor<4>, Tensor<4>) {
-        let products = self.products(x.clone());
-        self.residuals_of(x, &products)
-    }
-
     /// `P x` and `T[x, φ_k]`.
     fn products(&self, x: Tensor<4>) -> FrameProducts {
         let coeffs = self.ipalm.energy.bspline().coefficients(x);
@@ -1032,36 +1023,21 @@ impl FeatureProblem<'_> {
         FrameProducts { coeffs, warped }
     }
 
-    /// [`residuals`](Self::residuals) from `x`'s [`products`](Self::products).
-    fn residuals_of(&self, x: Tensor<4>, products: &FrameProducts) -> (Tensor<4>, Tensor<4>) {
-        (
-            products.warped.clone() - self.prev.clone(),
-            self.next.clone() - x,
-        )
-    }
-
-    /// `Q` from its residuals, differentiable (float32 sum).
-    fn differentiable(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Tensor<1> {
+    /// `Q` at `x` from its [`products`](Self::products), differentiable (float32): the data
+    /// terms of the residuals `T[x, φ_k] − f_{k−1}` and `T[f_{k+1}, φ_{k+1}] − x`, each the
+    /// fused squared distance of its two sides (the residuals are never tensors).
+    fn differentiable(&self, x: Tensor<4>, products: &FrameProducts) -> Tensor<1> {
         let c_tot = self.ipalm.layout.channels();
         let delta = self.ipalm.energy.params().delta;
-        (data_term_from_residual(moved.clone(), c_tot)
-            + data_term_from_residual(fixed.clone(), c_tot))
+        (data_term_from_warped(products.warped.clone(), self.prev.clone(), c_tot)
+            + data_term_from_warped(self.next.clone(), x, c_tot))
         .mul_scalar(self.steps / delta)
     }
 
-    /// The squared norms of the two residuals, summed for decisions: read back (with any
-    /// other scalars of the same transfer) and added by [`decision_of`](Self::decision_of).
-    fn norms(&self, (moved, fixed): &(Tensor<4>, Tensor<4>)) -> Vec<Tensor<1>> {
-        let grid = &self.ipalm.grid;
-        vec![
-            grid.decision_norm2(moved.clone()),
-            grid.decision_norm2(fixed.clone()),
-        ]
-    }
-
-    /// [`norms`](Self::norms) of the residuals at `x` from its products, without the
-    /// residuals as tensors (two fresh frame blocks per trial): the same values.
-    fn trial_norms(&self, x: Tensor<4>, products: &FrameProducts) -> Vec<Tensor<1>> {
+    /// The squared norms of the two residuals at `x`, from its products, summed for
+    /// decisions: read back (with any other scalars of the same transfer) and added by
+    /// [`decision_of`](Self::decision_of).
+    fn norms(&self, x: Tensor<4>, products: &FrameProducts) -> Vec<Tensor<1>> {
         let grid = &self.ipalm.grid;
         vec![
             grid.decision_distance2(products.warped.clone(), self.prev.clone()),

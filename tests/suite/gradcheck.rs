@@ -370,6 +370,120 @@ fn data_term_gradient_check_with(backend: Backend, gather: Gather) {
     }
 }
 
+/// The fused squared distance `Σ (a_n − b_n)²` under the data term (a custom op with a
+/// hand-written backward on flex, composed elsewhere): its value against the composed sum,
+/// its autodiff gradients of `Σ_n w_n D_n` against the hand-derived `±2 w_n (a_n − b_n)` and
+/// finite differences in float64; in float32 its gradient is the composed backward's bit for
+/// bit (`2g·d` against `g·d + g·d`).
+fn squared_distance_gradient_check(backend: Backend) {
+    use deepmorph::model::energy::distance_op::distance2_each;
+    let mut s = Setup::new(backend, 6);
+    let (n, c) = (2, 2);
+    let shape = [n, c, H, W];
+    let a_host = s.rng.smooth_image(n * c, H, W);
+    let b_host = s.rng.smooth_image(n * c, H, W);
+    let weights = [0.7, -1.3];
+    let (a, b): (Tensor<4>, Tensor<4>) = (
+        s.tensor(a_host.clone(), shape),
+        s.tensor(b_host.clone(), shape),
+    );
+    let w = s.tensor(weights.to_vec(), [n]);
+    let composed = |a: Tensor<4>, b: Tensor<4>| {
+        (a - b)
+            .square()
+            .reshape([n, c * H * W])
+            .sum_dim(1)
+            .reshape([n])
+    };
+    check(
+        "sum (a - b)^2 fused vs composed",
+        &values(distance2_each(a.clone(), b.clone())),
+        &values(composed(a.clone(), b.clone())),
+        HAND_VS_AUTODIFF,
+    );
+
+    let leaves = [a.clone(), b.clone()].map(|t| t.require_grad());
+    let grads = (distance2_each(leaves[0].clone(), leaves[1].clone()) * w.clone())
+        .sum()
+        .backward();
+    let auto = leaves.clone().map(|t| values(t.grad(&grads).unwrap()));
+    let per_item = c * H * W;
+    let hand_a: Vec<f64> = (0..n * per_item)
+        .map(|i| 2.0 * weights[i / per_item] * (a_host[i] - b_host[i]))
+        .collect();
+    let hand_b: Vec<f64> = hand_a.iter().map(|g| -g).collect();
+    check(
+        "dD/da hand vs autodiff",
+        &hand_a,
+        &auto[0],
+        HAND_VS_AUTODIFF,
+    );
+    check(
+        "dD/db hand vs autodiff",
+        &hand_b,
+        &auto[1],
+        HAND_VS_AUTODIFF,
+    );
+    // Item by item: a batch of copies of one item at a time.
+    let weighted = |copies: Vec<Vec<f64>>, fixed: &[f64], item: usize, moved_first: bool| {
+        let m = copies.len();
+        let moved = s.batch(copies, [0, c, H, W]);
+        let fixed = s.tensor(fixed.repeat(m), [m, c, H, W]);
+        let d = if moved_first {
+            distance2_each(moved, fixed)
+        } else {
+            distance2_each(fixed, moved)
+        };
+        values(d.mul_scalar(weights[item]))
+    };
+    for item in 0..n {
+        let range = item * per_item..(item + 1) * per_item;
+        let (a_item, b_item) = (&a_host[range.clone()], &b_host[range.clone()]);
+        let fd_a = finite_differences(a_item, central, |copies| {
+            weighted(copies, b_item, item, true)
+        });
+        let fd_b = finite_differences(b_item, central, |copies| {
+            weighted(copies, a_item, item, false)
+        });
+        check(
+            "dD/da autodiff vs FD",
+            &auto[0][range.clone()],
+            &fd_a,
+            FINITE_DIFFERENCE,
+        );
+        check(
+            "dD/db autodiff vs FD",
+            &auto[1][range.clone()],
+            &fd_b,
+            FINITE_DIFFERENCE,
+        );
+    }
+
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(H, W, &device, DType::F32).unwrap();
+    let (a, b) = (grid.tensor(a_host, shape), grid.tensor(b_host, shape));
+    let w = grid.tensor(weights.to_vec(), [n]);
+    let gradients = |fused: bool| {
+        let leaves = [a.clone(), b.clone()].map(|t| t.require_grad());
+        let d = if fused {
+            distance2_each(leaves[0].clone(), leaves[1].clone())
+        } else {
+            composed(leaves[0].clone(), leaves[1].clone())
+        };
+        let grads = (d * w.clone()).sum().backward();
+        leaves.map(|t| values(t.grad(&grads).unwrap()))
+    };
+    let (fused, composed) = (gradients(true), gradients(false));
+    assert_eq!(
+        fused[0], composed[0],
+        "float32 dD/da: fused and composed backward differ"
+    );
+    assert_eq!(
+        fused[1], composed[1],
+        "float32 dD/db: fused and composed backward differ"
+    );
+}
+
 /// The separable operator `R · x · Cᵀ` (banded on flex, dense matmuls elsewhere) against
 /// the dense product of its own matrices, and its autodiff gradient (the op's hand-written
 /// backward `Rᵀ · g · C`) against the dense adjoint and finite differences. The operators
@@ -640,6 +754,7 @@ on_each_cpu_backend!(
     density_gradient_check,
     regularizer_gradient_check,
     data_term_gradient_check,
+    squared_distance_gradient_check,
     separable_gradient_check,
     path_energy_gradient_check,
 );

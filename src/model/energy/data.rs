@@ -2,6 +2,7 @@
 
 use burn::tensor::Tensor;
 
+use crate::model::energy::distance_op::distance2_each;
 use crate::model::warp::BSpline;
 
 /// `D[f_n, f̃_n, φ_n]` for each triple of the batch.
@@ -41,25 +42,14 @@ pub fn data_term_from_coefficients(
 /// [`data_term`] with the warped frame `T[f̃, φ]` given: a feature step keeps `φ` and `f̃`
 /// fixed for a whole backtracking search.
 ///
+/// The sum of squares is the fused [`distance2_each`] (one pass for the value, one per
+/// tracked input for the gradient, split over the cores on flex), differentiable in both.
+///
 /// # Shapes
 /// - `warped`: `[N, C, H, W]`, `f`: `[N, C, H, W]`
 /// - output: `[N]`
 pub fn data_term_from_warped(warped: Tensor<4>, f: Tensor<4>, c_tot: usize) -> Tensor<1> {
-    data_term_from_residual(warped - f, c_tot)
-}
-
-/// [`data_term`] from the residual `r = T[f̃, φ] − f`.
-///
-/// # Shapes
-/// - `residual`: `[N, C, H, W]`
-/// - output: `[N]`
-pub fn data_term_from_residual(residual: Tensor<4>, c_tot: usize) -> Tensor<1> {
-    let [n, c, h, w] = residual.dims();
+    let [_, _, h, w] = warped.dims();
     let scale = 1.0 / (2.0 * c_tot as f64 * (h * w) as f64);
-    residual
-        .square()
-        .reshape([n, c * h * w])
-        .sum_dim(1)
-        .reshape([n])
-        .mul_scalar(scale)
+    distance2_each(warped, f).mul_scalar(scale)
 }

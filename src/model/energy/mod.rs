@@ -6,5 +6,6 @@ pub mod anisotropy;
 pub mod data;
 pub mod density;
 pub mod density_op;
+pub mod distance_op;
 pub mod path;
 pub mod regularizer;
