@@ -19,6 +19,7 @@
 //! of its channels too ([`Layout`]), where the planar entry points transpose per call.
 
 use std::borrow::Cow;
+use std::mem::MaybeUninit;
 use std::ops::{Add, AddAssign, Div, Mul, Sub};
 
 use rayon::prelude::*;
@@ -912,10 +913,34 @@ fn check_table<T>(values: &[T], stride: usize, d: &Dims) {
 /// [`sample`] from channels-last coefficients (`layout` [`Layout::ChannelsLast`]): `values`
 /// starts at image 0's first channel.
 pub fn sample_from_table<T: Real>(values: &[T], stride: usize, phi: &[T], out: &mut [T], d: Dims) {
+    // SAFETY: the kernel writes only initialised values.
+    sample_from_table_uninit(values, stride, phi, unsafe { as_uninit(out) }, d);
+}
+
+/// [`sample_from_table`] into an output not yet initialised: every value is written.
+pub fn sample_from_table_uninit<T: Real>(
+    values: &[T],
+    stride: usize,
+    phi: &[T],
+    out: &mut [MaybeUninit<T>],
+    d: Dims,
+) {
     check_table(values, stride, &d);
     assert_eq!(phi.len(), d.n * 2 * d.points(), "deformation");
     assert_eq!(out.len(), d.n * d.c * d.points(), "samples");
     sample_channels_last(values, Layout::ChannelsLast { stride }, phi, out, d);
+}
+
+/// `out` as a slice of possibly uninitialised values, for the kernels that write every value
+/// of their output and read none.
+///
+/// # Safety
+///
+/// The caller writes only initialised values through the result (a `T` slice must stay
+/// initialised).
+unsafe fn as_uninit<T>(out: &mut [T]) -> &mut [MaybeUninit<T>] {
+    // SAFETY: `MaybeUninit<T>` has `T`'s layout; the caller's promise keeps `out` valid.
+    unsafe { &mut *(out as *mut [T] as *mut [MaybeUninit<T>]) }
 }
 
 /// [`sample_position_grad`] from channels-last coefficients, as [`sample_from_table`].
@@ -1002,11 +1027,17 @@ fn image_table<T: Real>(values: &[T], layout: Layout, d: Dims, b: usize) -> (Cow
     }
 }
 
-/// [`sample`] for many channels.
-fn sample_channels_last<T: Real>(coeffs: &[T], layout: Layout, phi: &[T], out: &mut [T], d: Dims) {
+/// [`sample`] for many channels: writes every value of `out`.
+fn sample_channels_last<T: Real>(
+    coeffs: &[T],
+    layout: Layout,
+    phi: &[T],
+    out: &mut [MaybeUninit<T>],
+    d: Dims,
+) {
     let (points, c) = (d.points(), d.c);
     let tasks = points.div_ceil(PIXELS_PER_TASK);
-    let out = Shared(out.as_mut_ptr());
+    let out = Shared(out.as_mut_ptr().cast::<T>());
     for b in 0..d.n {
         let (table, stride) = image_table(coeffs, layout, d, b);
         (0..tasks).into_par_iter().for_each(|chunk| {
@@ -1303,13 +1334,20 @@ fn sum4<T: Real>(a: &[T; 4], b: &[T; 4]) -> T {
 
 /// `T = B(φ) c`: the spline with coefficients `coeffs` at the clamped points `phi`.
 pub fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [T], d: Dims) {
+    // SAFETY: the kernels write only initialised values.
+    sample_uninit(coeffs, phi, unsafe { as_uninit(out) }, d);
+}
+
+/// [`sample`] into an output not yet initialised: every value is written (a zeroed output
+/// was a serial memset, or page clearing, of a whole frame before each parallel warp).
+pub fn sample_uninit<T: Real>(coeffs: &[T], phi: &[T], out: &mut [MaybeUninit<T>], d: Dims) {
     d.check(coeffs.len(), phi, out.len());
     if d.c >= CHANNELS_LAST_FROM {
         return sample_channels_last(coeffs, Layout::Planar, phi, out, d);
     }
     let points = d.points();
     let tasks = points.div_ceil(PIXELS_PER_TASK);
-    let out = Shared(out.as_mut_ptr());
+    let out = Shared(out.as_mut_ptr().cast::<T>());
     (0..d.n * tasks).into_par_iter().for_each(|task| {
         let (b, chunk) = (task / tasks, task % tasks);
         let range = chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(points);
@@ -1666,6 +1704,44 @@ mod tests {
     fn the_adjoint_and_the_position_gradient_match_the_evaluation() {
         for c in [3, CHANNELS_LAST_FROM + 3] {
             adjoint_and_position_gradient_match(c);
+        }
+    }
+
+    /// The evaluation writes every output value (the op hands it uninitialised memory):
+    /// planar and channels-last, whole tasks and tiles and their remainders, from planar
+    /// coefficients and from a channels-last table, each output first filled with NaN.
+    #[test]
+    fn the_evaluation_writes_every_value() {
+        // 2 images of 40 × 31 points: a task of 1024 points and a remainder, tiles of 64
+        // and a remainder.
+        let (n, h, w) = (2, 40, 31);
+        let phi: Vec<f64> = (0..n * 2 * h * w)
+            .map(|i| (i as f64 * 0.377).rem_euclid(30.0) - 1.0)
+            .collect();
+        for c in [3, CHANNELS_LAST_FROM, 13] {
+            let d = Dims {
+                n,
+                c,
+                h,
+                w,
+                ho: h,
+                wo: w,
+            };
+            let coeffs = ramp(n * c * h * w, 0.3);
+            let mut out = vec![f64::NAN; n * c * h * w];
+            sample(&coeffs, &phi, &mut out, d);
+            assert!(out.iter().all(|v| v.is_finite()), "{c} planar channels");
+            if !reads_channels_last(c) {
+                continue;
+            }
+            let mut table = vec![0.0; coeffs.len()];
+            for b in 0..n {
+                let image = b * c * h * w..(b + 1) * c * h * w;
+                channels_last_into(&coeffs[image.clone()], c, h * w, &mut table[image]);
+            }
+            let mut from_table = vec![f64::NAN; out.len()];
+            sample_from_table(&table, c, &phi, &mut from_table, d);
+            assert_eq!(from_table, out, "{c} channels from a channels-last table");
         }
     }
 

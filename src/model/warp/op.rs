@@ -169,15 +169,19 @@ pub(super) mod flex {
     impl Kernel for f64 {}
 
     fn sample_typed<T: Kernel>(coeffs: &Coefficients, phi: &HostView, d: Dims) -> TensorData {
-        let mut out = vec![T::default(); d.n * d.c * d.ho * d.wo];
+        let len = d.n * d.c * d.ho * d.wo;
+        let mut out = Vec::with_capacity(len);
+        let spare = &mut out.spare_capacity_mut()[..len];
         match coeffs {
-            Coefficients::Planar(c) => host::sample(c.values(), phi.values(), &mut out, d),
+            Coefficients::Planar(c) => host::sample_uninit(c.values(), phi.values(), spare, d),
             Coefficients::ChannelsLast { tensor, stride } => {
                 let start = tensor.layout().start_offset();
                 let values = &tensor.storage::<T>()[start..];
-                host::sample_from_table(values, *stride, phi.values(), &mut out, d);
+                host::sample_from_table_uninit(values, *stride, phi.values(), spare, d);
             }
         }
+        // SAFETY: the sampling kernels write every one of the `len` values.
+        unsafe { out.set_len(len) };
         TensorData::new(out, [d.n, d.c, d.ho, d.wo])
     }
 
