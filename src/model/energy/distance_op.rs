@@ -93,53 +93,29 @@ mod flex {
     use rayon::prelude::*;
 
     use super::DistanceOps;
+    use crate::model::decision::flex::{Term, Value, reduce};
     use crate::model::host_view::HostView;
     use crate::model::warp::host::Real;
 
-    /// Values per task: a task's float64 partial sum then adds to the others in a fixed
-    /// order, so the value does not depend on the thread count.
+    /// Values per task of the gradient kernel.
     const CHUNK: usize = 1 << 14;
 
-    trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
+    trait Kernel: Real + burn::tensor::Element + bytemuck::Pod + Value {}
     impl Kernel for f32 {}
     impl Kernel for f64 {}
 
-    /// `Σ (a_i − b_i)²` of one chunk, the difference in `T`, the rest in float64, in eight
-    /// interleaved lanes.
-    fn chunk_distance2<T: Kernel>(a: &[T], b: &[T]) -> f64 {
-        let mut lanes = [0.0f64; 8];
-        let (a8, b8) = (a.chunks_exact(8), b.chunks_exact(8));
-        let (a_rest, b_rest) = (a8.remainder(), b8.remainder());
-        for (x, y) in a8.zip(b8) {
-            for j in 0..8 {
-                let d = (x[j] - y[j]).to_f64();
-                lanes[j] += d * d;
-            }
-        }
-        let mut s = ((lanes[0] + lanes[1]) + (lanes[2] + lanes[3]))
-            + ((lanes[4] + lanes[5]) + (lanes[6] + lanes[7]));
-        for (&x, &y) in a_rest.iter().zip(b_rest) {
-            let d = (x - y).to_f64();
-            s += d * d;
-        }
-        s
-    }
-
-    /// The host kernel of [`super::distance2_each`] on row-major slices of `n` items.
+    /// The host kernel of [`super::distance2_each`] on row-major slices of `n` items: each
+    /// item's sum as the decision sums add it ([`reduce`]: the difference in `T`, squares
+    /// and sums in float64, in chunks whose partial sums add in a fixed order).
     fn host_distance2_each<T: Kernel>(a: &[T], b: &[T], n: usize) -> Vec<f64> {
         assert_eq!(a.len(), b.len(), "squared distance: lengths differ");
         let per_item = a.len() / n.max(1);
-        let chunks = per_item.div_ceil(CHUNK).max(1);
-        let partial: Vec<f64> = (0..n * chunks)
-            .into_par_iter()
-            .map(|task| {
-                let (item, chunk) = (task / chunks, task % chunks);
-                let from = item * per_item + chunk * CHUNK;
-                let to = (from + CHUNK).min((item + 1) * per_item);
-                chunk_distance2(&a[from..to], &b[from..to])
+        (0..n)
+            .map(|item| {
+                let range = item * per_item..(item + 1) * per_item;
+                reduce(&a[range.clone()], &b[range], Term::SquaredDifference)
             })
-            .collect();
-        partial.chunks(chunks).map(|p| p.iter().sum()).collect()
+            .collect()
     }
 
     /// The host kernel of [`DistanceOps::scaled_difference`]: `s[item] · (a − b)`.
@@ -228,7 +204,7 @@ mod flex {
 
         #[test]
         fn the_sums_do_not_depend_on_the_thread_count() {
-            let len = 3 * CHUNK + 17;
+            let len = 3 * (1 << 14) + 17;
             let a: Vec<f32> = (0..2 * len)
                 .map(|i| ((i * 37) % 101) as f32 * 0.013)
                 .collect();
