@@ -533,6 +533,17 @@ fn solve_all_columns<T: Real>(
 pub fn prefilter_channels_last<T: Real>(
     source: &[T],
     out: &mut [T],
+    shape: (usize, usize, usize, usize),
+) {
+    // SAFETY: the kernel writes only initialised values.
+    prefilter_channels_last_uninit(source, unsafe { as_uninit(out) }, shape);
+}
+
+/// [`prefilter_channels_last`] into an output not yet initialised: each row is gathered
+/// (every value written) before anything reads it.
+pub fn prefilter_channels_last_uninit<T: Real>(
+    source: &[T],
+    out: &mut [MaybeUninit<T>],
     (n, c, height, width): (usize, usize, usize, usize),
 ) {
     let plane = height * width;
@@ -563,25 +574,45 @@ pub fn prefilter_channels_last<T: Real>(
         .with_min_len((PIXELS_PER_TASK / width).max(1))
         .for_each(|(row, values)| {
             let (b, i) = (row / height, row % height);
-            gather_row(&source[b * c * plane..(b + 1) * c * plane], values, i, c);
+            let values = gather_row(&source[b * c * plane..(b + 1) * c * plane], values, i, c);
             solve_interleaved_simd(values, c, &along_w);
         });
+    // SAFETY: every row was gathered above.
+    let out = unsafe { assume_init(out) };
     // An image is one `[H, W·C]` plane here; wider blocks, as a row holds `C` times more.
     solve_all_columns(out, line, height, 256, &along_h);
 }
 
 /// Row `i` of the `C` planes of `image` (`[C, H, W]`), channels-last into `values`
-/// (`[W, C]`).
+/// (`[W, C]`): every value written, and returned initialised.
 #[inline(always)]
-fn gather_row<T: Real>(image: &[T], values: &mut [T], i: usize, c: usize) {
+fn gather_row<'a, T: Real>(
+    image: &[T],
+    values: &'a mut [MaybeUninit<T>],
+    i: usize,
+    c: usize,
+) -> &'a mut [T] {
     let width = values.len() / c;
+    assert_eq!(width * c, values.len(), "a row of {c} channels");
     let plane = image.len() / c;
     for ch in 0..c {
         let from = ch * plane + i * width;
         for (j, &v) in image[from..from + width].iter().enumerate() {
-            values[j * c + ch] = v;
+            values[j * c + ch].write(v);
         }
     }
+    // SAFETY: the loops wrote all `width · c` values.
+    unsafe { assume_init(values) }
+}
+
+/// `values` as initialised values.
+///
+/// # Safety
+///
+/// Every value of `values` has been written.
+unsafe fn assume_init<T>(values: &mut [MaybeUninit<T>]) -> &mut [T] {
+    // SAFETY: `MaybeUninit<T>` has `T`'s layout, and the caller's promise.
+    unsafe { &mut *(values as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
 /// The channels-last prefilter of one image (`source` `[C, H, W]` planar, `image`
@@ -590,7 +621,7 @@ fn gather_row<T: Real>(image: &[T], values: &mut [T], i: usize, c: usize) {
 #[inline(always)]
 fn image_channels_last<T: Real>(
     source: &[T],
-    image: &mut [T],
+    image: &mut [MaybeUninit<T>],
     (c, width): (usize, usize),
     along_w: &(Vec<T>, Vec<T>, Vec<T>),
     along_h: &(Vec<T>, Vec<T>, Vec<T>),
@@ -598,17 +629,25 @@ fn image_channels_last<T: Real>(
     let line = width * c;
     let height = image.len() / line;
     for i in 0..height {
-        gather_row(source, &mut image[i * line..(i + 1) * line], i, c);
-        solve_interleaved(&mut image[i * line..(i + 1) * line], c, along_w);
-        eliminate_row(image, line, i, along_h);
+        let row = gather_row(source, &mut image[i * line..(i + 1) * line], i, c);
+        solve_interleaved(row, c, along_w);
+        // SAFETY: rows 0..=i are gathered; the elimination reads rows i − 1 and i.
+        eliminate_row(
+            unsafe { assume_init(&mut image[..(i + 1) * line]) },
+            line,
+            i,
+            along_h,
+        );
     }
+    // SAFETY: every row was gathered above.
+    let image = unsafe { assume_init(image) };
     for i in (0..height - 1).rev() {
         substitute_row(image, line, i, along_h);
     }
 }
 
 simd_dispatch!(fn image_channels_last_simd<T: Real>(
-    source: &[T], image: &mut [T], shape: (usize, usize),
+    source: &[T], image: &mut [MaybeUninit<T>], shape: (usize, usize),
     along_w: &(Vec<T>, Vec<T>, Vec<T>), along_h: &(Vec<T>, Vec<T>, Vec<T>)
 ) => image_channels_last);
 
@@ -1651,7 +1690,7 @@ mod tests {
                     prefilter(&mut adjoint, h, w, true);
                     let mut into = vec![0.0f32; f.len()];
                     prefilter_into(&f, &mut into, h, w, true);
-                    let mut table = vec![0.0f32; f.len()];
+                    let mut table = vec![f32::NAN; f.len()];
                     prefilter_channels_last(&f, &mut table, (n, c, h, w));
                     [forward, adjoint, into, table]
                 })
@@ -1769,7 +1808,8 @@ mod tests {
         let f: Vec<f32> = ramp(n * c * h * w, 0.2).iter().map(|&v| v as f32).collect();
         let mut planar = f.clone();
         prefilter(&mut planar, h, w, false);
-        let mut table = vec![0.0f32; f.len()];
+        // NaN first: the op hands the prefilter uninitialised memory, every value is written.
+        let mut table = vec![f32::NAN; f.len()];
         prefilter_channels_last(&f, &mut table, (n, c, h, w));
         for b in 0..n {
             let want = channels_last(&planar[b * c * h * w..(b + 1) * c * h * w], c, h * w);

@@ -217,8 +217,12 @@ pub(super) mod flex {
     fn prefilter_channels_last<T: Kernel>(x: &HostView) -> FlexTensor {
         let s = x.shape();
         let (n, c, h, w) = (s[0], s[1], s[2], s[3]);
-        let mut out = vec![T::default(); n * c * h * w];
-        host::prefilter_channels_last(x.values::<T>(), &mut out, (n, c, h, w));
+        let len = n * c * h * w;
+        let mut out = Vec::with_capacity(len);
+        let spare = &mut out.spare_capacity_mut()[..len];
+        host::prefilter_channels_last_uninit(x.values::<T>(), spare, (n, c, h, w));
+        // SAFETY: the prefilter writes every one of the `len` values.
+        unsafe { out.set_len(len) };
         FlexTensor::from_data(TensorData::new(out, [n, h, w, c])).permute(&[0, 3, 1, 2])
     }
 
