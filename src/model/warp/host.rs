@@ -1566,6 +1566,13 @@ simd_dispatch!(fn scatter_simd<T: Real>(
 /// split into parts that add into private copies, summed at the end, so that 3 RGB channels
 /// still keep every core busy.
 pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
+    // SAFETY: the kernel writes only initialised values.
+    sample_adjoint_uninit(grad, phi, unsafe { as_uninit(out) }, d);
+}
+
+/// [`sample_adjoint`] into an output not yet initialised: each task clears (or first
+/// copies) the planes it owns before adding to them.
+pub fn sample_adjoint_uninit<T: Real>(grad: &[T], phi: &[T], out: &mut [MaybeUninit<T>], d: Dims) {
     d.check(out.len(), phi, grad.len());
     let (points, plane) = (d.points(), d.h * d.w);
     let planes = d.n * d.c;
@@ -1593,7 +1600,9 @@ pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
             let target = unsafe {
                 std::slice::from_raw_parts_mut(base.get(planes_at), channels.len() * plane)
             };
-            target.fill(T::default());
+            target.fill(MaybeUninit::new(T::default()));
+            // SAFETY: cleared just now.
+            let target = unsafe { assume_init(target) };
             scatter_simd(grad, phi, target, d, b, channels, 0..points);
         });
         return;
@@ -1613,7 +1622,11 @@ pub fn sample_adjoint<T: Real>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
         .enumerate()
         .for_each(|(pl, target)| {
             let first = &partial[pl * parts * plane..(pl * parts + 1) * plane];
-            target.copy_from_slice(first);
+            for (t, &v) in target.iter_mut().zip(first) {
+                t.write(v);
+            }
+            // SAFETY: the plane's every value was written just now.
+            let target = unsafe { assume_init(target) };
             for part in 1..parts {
                 let more = &partial[(pl * parts + part) * plane..(pl * parts + part + 1) * plane];
                 for (t, &m) in target.iter_mut().zip(more) {
@@ -1781,6 +1794,47 @@ mod tests {
             let mut from_table = vec![f64::NAN; out.len()];
             sample_from_table(&table, c, &phi, &mut from_table, d);
             assert_eq!(from_table, out, "{c} channels from a channels-last table");
+        }
+    }
+
+    /// The adjoint writes every output value (the op hands it uninitialised memory), on both
+    /// of its paths: a task per group of planes (many planes), and partial planes added
+    /// (fewer planes than twice the threads).
+    #[test]
+    fn the_adjoint_writes_every_value() {
+        let (h, w) = (40, 31);
+        for (n, c) in [(1, 1), (1, 3), (2, 11)] {
+            let d = Dims {
+                n,
+                c,
+                h,
+                w,
+                ho: h,
+                wo: w,
+            };
+            let phi: Vec<f64> = (0..n * 2 * h * w)
+                .map(|i| (i as f64 * 0.377).rem_euclid(30.0) - 1.0)
+                .collect();
+            let grad = ramp(n * c * h * w, 0.3);
+            let run = |threads: usize| {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .expect("a thread pool");
+                let mut out = vec![f64::NAN; n * c * h * w];
+                pool.install(|| sample_adjoint(&grad, &phi, &mut out, d));
+                out
+            };
+            let one = run(1);
+            for threads in [2, 8] {
+                let many = run(threads);
+                for (i, (&x, &y)) in many.iter().zip(&one).enumerate() {
+                    assert!(
+                        (x - y).abs() <= 1e-12 * (1.0 + y.abs()),
+                        "{n} × {c} planes, {threads} threads, value {i}: {x} against {y}"
+                    );
+                }
+            }
         }
     }
 

@@ -186,8 +186,12 @@ pub(super) mod flex {
     }
 
     fn adjoint_typed<T: Kernel>(grad: &HostView, phi: &HostView, d: Dims) -> TensorData {
-        let mut out = vec![T::default(); d.n * d.c * d.h * d.w];
-        host::sample_adjoint(grad.values(), phi.values(), &mut out, d);
+        let len = d.n * d.c * d.h * d.w;
+        let mut out = Vec::<T>::with_capacity(len);
+        let spare = &mut out.spare_capacity_mut()[..len];
+        host::sample_adjoint_uninit(grad.values(), phi.values(), spare, d);
+        // SAFETY: the adjoint writes every one of the `len` values.
+        unsafe { out.set_len(len) };
         TensorData::new(out, [d.n, d.c, d.h, d.w])
     }
 
