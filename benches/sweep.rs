@@ -9,7 +9,8 @@
 //!
 //! The state is a mid-run one: the demo pair after a few sweeps at the benchmarked size, so
 //! the deformations are non-trivial and backtracking behaves as in a real run. Each timed
-//! iteration sweeps a fresh copy of that state and ends with `device.sync()`.
+//! iteration sweeps a fresh copy of that state and ends with `device.sync()`, on a worker of
+//! the solver's pool as the CLI runs it ([`deepmorph::backend::on_a_worker`]).
 //!
 //! ```text
 //! cargo bench --features ndarray,flex --bench sweep
@@ -85,10 +86,12 @@ fn deep_benches(c: &mut Criterion) {
             }
             group.bench_with_input(BenchmarkId::new(backend.name(), n), &n, |bench, _| {
                 bench.iter(|| {
-                    let mut state = warm.clone();
-                    let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
-                    device.sync().expect("device sync");
-                    report
+                    on_pool(|| {
+                        let mut state = warm.clone();
+                        let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
+                        device.sync().expect("device sync");
+                        report
+                    })
                 })
             });
         }
@@ -135,15 +138,27 @@ fn benches(c: &mut Criterion) {
             .unwrap();
             group.bench_with_input(BenchmarkId::new(backend.name(), n), &n, |bench, _| {
                 bench.iter(|| {
-                    let mut state = warm.state.clone();
-                    let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
-                    device.sync().expect("device sync");
-                    report
+                    on_pool(|| {
+                        let mut state = warm.state.clone();
+                        let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
+                        device.sync().expect("device sync");
+                        report
+                    })
                 })
             });
         }
     }
     group.finish();
+}
+
+/// Runs a timed sweep on a worker of one pool, as the CLI runs its solver
+/// ([`deepmorph::backend::on_a_worker`]); the pool is built once.
+fn on_pool<R: Send>(sweep: impl FnOnce() -> R + Send) -> R {
+    static POOL: std::sync::OnceLock<Option<rayon::ThreadPool>> = std::sync::OnceLock::new();
+    match POOL.get_or_init(deepmorph::backend::solver_pool) {
+        Some(pool) => pool.install(sweep),
+        None => sweep(),
+    }
 }
 
 criterion_group!(sweep, benches, deep_benches);

@@ -47,26 +47,11 @@ const EXIT_INTERRUPTED: i32 = 130;
 
 fn main() {
     let cli = Cli::parse();
-    let code = on_a_worker(|| run(cli)).unwrap_or_else(|e| {
+    let code = deepmorph::backend::on_a_worker(|| run(cli)).unwrap_or_else(|e| {
         eprintln!("Error: {e:#}");
         EXIT_ERROR
     });
     std::process::exit(code);
-}
-
-/// Runs `job` on a worker of a rayon pool of one thread per core, not on the main thread.
-///
-/// The solver is a serial loop of parallel kernels. From outside the pool each kernel was
-/// injected into it, woke its workers and put the solver's thread to sleep until they were
-/// done: three threads on two cores, a sleep and a wake-up per kernel. On a worker the
-/// solver's thread takes its share of each kernel itself and the other worker steals the
-/// rest. (Falls back to the calling thread if no pool can be built.)
-fn on_a_worker<R: Send>(job: impl FnOnce() -> R + Send) -> R {
-    // The main thread's stack size: the generated VGG19 code has large frames.
-    match rayon::ThreadPoolBuilder::new().stack_size(8 << 20).build() {
-        Ok(pool) => pool.install(job),
-        Err(_) => job(),
-    }
 }
 
 fn run(cli: Cli) -> Result<i32> {
