@@ -54,6 +54,11 @@ struct Args {
 }
 
 fn main() -> Result<()> {
+    // The solver's thread on a worker of the kernels' pool, as the CLI runs it.
+    deepmorph::backend::on_a_worker(run)
+}
+
+fn run() -> Result<()> {
     let args = Args::parse();
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data/images/pairs/motorcycle");
     if !dir.join("disparity_a.png").is_file() {

@@ -170,6 +170,11 @@ struct RunRecord {
 }
 
 fn main() -> Result<()> {
+    // The solver's thread on a worker of the kernels' pool, as the CLI runs it.
+    deepmorph::backend::on_a_worker(run)
+}
+
+fn run() -> Result<()> {
     let args = Args::parse();
     let data = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/data");
     if !data.join("images/pairs").is_dir() {
