@@ -20,7 +20,9 @@
 //! and a finished one only rewrites the sheets and the table. The table goes into
 //! `docs/results.md` between the markers `<!-- results:KEY -->` and `<!-- /results:KEY -->`
 //! (KEY names the study and the size; the text around them is left alone; a missing
-//! section is appended), the sheets into `docs/results/`.
+//! section is appended), the sheets into `docs/results/`, and a copy of each record into
+//! `docs/results/records/`: committed with the document, it keeps a run's row (and its
+//! sheet) when the morph folder is gone, so a fresh checkout does not repeat the study.
 //!
 //! Reads the team's `../shared/data` (pairs and the stand-in VGG19); says so and exits when
 //! they are absent.
@@ -198,18 +200,33 @@ fn run() -> Result<()> {
     }
     std::fs::create_dir_all(&args.work)
         .with_context(|| format!("cannot create {}", args.work.display()))?;
+    let sheets = args.doc.parent().unwrap_or(Path::new(".")).join("results");
+    let kept = sheets.join("records");
+    std::fs::create_dir_all(&kept)
+        .with_context(|| format!("cannot create {}", kept.display()))?;
     let mut records = Vec::new();
     for (i, spec) in runs.iter().enumerate() {
         let name = spec.name();
         let record_path = args.work.join(format!("{name}.json"));
-        let previous = std::fs::read(&record_path)
-            .ok()
-            .and_then(|bytes| serde_json::from_slice::<RunRecord>(&bytes).ok())
-            .filter(|r| &r.spec == spec && args.work.join(&name).join("config.json").is_file());
+        let kept_path = kept.join(format!("{name}.json"));
+        let previous = read_record(&record_path, spec)
+            .filter(|_| args.work.join(&name).join("config.json").is_file());
         let record = match previous {
             Some(record) => {
                 println!("[{}/{}] {name}: done before, kept", i + 1, runs.len());
                 record
+            }
+            // The morph folder is gone (a fresh checkout, a cleaned target): the committed
+            // record still holds the row, and the committed sheet stays as it is.
+            None if let Some(record) = read_record(&kept_path, spec) => {
+                println!(
+                    "[{}/{}] {name}: done before, kept from {}",
+                    i + 1,
+                    runs.len(),
+                    kept_path.display()
+                );
+                records.push(record);
+                continue;
             }
             None if args.dry_run || args.report => {
                 println!("[{}/{}] {name}: not run yet, left out", i + 1, runs.len());
@@ -228,15 +245,20 @@ fn run() -> Result<()> {
                     .with_context(|| format!("{} is unreadable", record_path.display()))?
             }
         };
+        if !args.dry_run && !args.report {
+            std::fs::copy(&record_path, &kept_path)
+                .with_context(|| format!("cannot copy the record to {}", kept_path.display()))?;
+        }
         records.push(record);
     }
     if args.dry_run || records.is_empty() {
         return Ok(());
     }
-    let sheets = args.doc.parent().unwrap_or(Path::new(".")).join("results");
-    std::fs::create_dir_all(&sheets)?;
     for record in &records {
         let dir = args.work.join(record.spec.name());
+        if !dir.join("config.json").is_file() {
+            continue;
+        }
         let mut image = sheet(&dir, record.spec.steps)?;
         if matches!(&record.spec.vary, Some((p, _)) if p == "xi1") {
             image = below(&image, &field_row(&dir, record.spec.steps, image.width())?);
@@ -257,6 +279,14 @@ fn run() -> Result<()> {
         sheets.display()
     );
     Ok(())
+}
+
+/// The record at `path` when it is readable and holds `spec`'s settings.
+fn read_record(path: &Path, spec: &RunSpec) -> Option<RunRecord> {
+    std::fs::read(path)
+        .ok()
+        .and_then(|bytes| serde_json::from_slice::<RunRecord>(&bytes).ok())
+        .filter(|r| &r.spec == spec)
 }
 
 /// Every run of the study, in table order: pairs, then the varied value, then models.

@@ -98,21 +98,17 @@ pub fn is_admissible(grid: &Grid, phi: Tensor<4>) -> bool {
 /// - output: `[N, 2, H, W]`
 pub fn with_identity_boundary(grid: &Grid, phi: Tensor<4>) -> Tensor<4> {
     let n = phi.dims()[0];
-    let on_boundary = boundary_indicator(grid, n).equal_elem(1.0);
-    phi.mask_where(on_boundary, grid.identity(n))
+    if n == 1 {
+        return phi.mask_where(grid.on_boundary(), grid.identity(1));
+    }
+    let shape = [n, 2, grid.height(), grid.width()];
+    phi.mask_where(
+        grid.on_boundary().expand(shape),
+        grid.identity(1).expand(shape),
+    )
 }
 
 /// 1 on the first and last row and column, 0 inside, `[N, 2, H, W]`.
 fn boundary_indicator(grid: &Grid, n: usize) -> Tensor<4> {
-    let (h, w) = (grid.height(), grid.width());
-    let values: Vec<f64> = (0..h)
-        .flat_map(|i| {
-            (0..w).map(move |j| {
-                let edge = i == 0 || j == 0 || i == h - 1 || j == w - 1;
-                if edge { 1.0 } else { 0.0 }
-            })
-        })
-        .collect();
-    let mask: Tensor<4> = grid.tensor(values, [1, 1, h, w]);
-    mask.expand([n, 2, h, w])
+    grid.boundary().expand([n, 2, grid.height(), grid.width()])
 }

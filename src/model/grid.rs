@@ -1,6 +1,8 @@
 //! The pixel grid a level of the model lives on.
 
-use burn::tensor::{DType, Device, FloatDType, Tensor, TensorData};
+use std::sync::{Arc, OnceLock};
+
+use burn::tensor::{Bool, DType, Device, FloatDType, Tensor, TensorData};
 
 use crate::backend::{Capabilities, Gather};
 use crate::error::{Error, Result};
@@ -21,6 +23,28 @@ pub struct Grid {
     device: Device,
     dtype: DType,
     capabilities: Capabilities,
+    /// Made on first use and shared by the grid's clones: built from host values per call,
+    /// `Id` and the boundary mask cost a prox as much as its arithmetic (a host loop in
+    /// float64 and an upload of `2·H·W` values each).
+    constants: Arc<Constants>,
+}
+
+/// The grid's constant tensors, on its device and in its dtype.
+#[derive(Default)]
+struct Constants {
+    /// `Id`, `[1, 2, H, W]`.
+    identity: OnceLock<Tensor<4>>,
+    /// 1 on the first and last row and column, 0 inside, `[1, 1, H, W]`.
+    boundary: OnceLock<Tensor<4>>,
+    /// Where [`Constants::boundary`] is 1, in both components: `[1, 2, H, W]`.
+    on_boundary: OnceLock<Tensor<4, Bool>>,
+}
+
+impl std::fmt::Debug for Constants {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // The values follow from the grid's size; printing them would print images.
+        f.write_str("Constants")
+    }
 }
 
 /// How [`Grid::decision_sum`] adds up the values whose sums decide a backtracking test
@@ -53,6 +77,7 @@ impl Grid {
             device: device.clone(),
             dtype,
             capabilities: Capabilities::of(device),
+            constants: Arc::default(),
         })
     }
 
@@ -164,6 +189,8 @@ impl Grid {
         Self {
             device: device.clone(),
             capabilities: Capabilities::of(device),
+            // The constants live on the old device.
+            constants: Arc::default(),
             ..self.clone()
         }
     }
@@ -186,12 +213,49 @@ impl Grid {
     /// The identity deformation `Id`, `[n, 2, H, W]` in pixel units: `Id[0](i, j) = i`,
     /// `Id[1](i, j) = j` (SPEC §0).
     pub fn identity(&self, n: usize) -> Tensor<4> {
-        let (h, w) = (self.height, self.width);
-        let mut values = Vec::with_capacity(2 * h * w);
-        values.extend((0..h).flat_map(|i| std::iter::repeat_n(i as f64, w)));
-        values.extend((0..h).flat_map(|_| (0..w).map(|j| j as f64)));
-        let id: Tensor<4> = self.tensor(values, [1, 2, h, w]);
+        let id = self
+            .constants
+            .identity
+            .get_or_init(|| {
+                let (h, w) = (self.height, self.width);
+                let mut values = Vec::with_capacity(2 * h * w);
+                values.extend((0..h).flat_map(|i| std::iter::repeat_n(i as f64, w)));
+                values.extend((0..h).flat_map(|_| (0..w).map(|j| j as f64)));
+                self.tensor(values, [1, 2, h, w])
+            })
+            .clone();
         if n == 1 { id } else { id.repeat_dim(0, n) }
+    }
+
+    /// 1 on the first and last row and column, 0 inside: `[1, 1, H, W]`.
+    pub fn boundary(&self) -> Tensor<4> {
+        self.constants
+            .boundary
+            .get_or_init(|| {
+                let (h, w) = (self.height, self.width);
+                let values: Vec<f64> = (0..h)
+                    .flat_map(|i| {
+                        (0..w).map(move |j| {
+                            let edge = i == 0 || j == 0 || i == h - 1 || j == w - 1;
+                            if edge { 1.0 } else { 0.0 }
+                        })
+                    })
+                    .collect();
+                self.tensor(values, [1, 1, h, w])
+            })
+            .clone()
+    }
+
+    /// Where [`boundary`](Self::boundary) is 1, for both components of a deformation:
+    /// `[1, 2, H, W]`.
+    pub fn on_boundary(&self) -> Tensor<4, Bool> {
+        self.constants
+            .on_boundary
+            .get_or_init(|| {
+                let (h, w) = (self.height, self.width);
+                self.boundary().expand([1, 2, h, w]).equal_elem(1.0)
+            })
+            .clone()
     }
 }
 
