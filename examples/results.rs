@@ -202,8 +202,7 @@ fn run() -> Result<()> {
         .with_context(|| format!("cannot create {}", args.work.display()))?;
     let sheets = args.doc.parent().unwrap_or(Path::new(".")).join("results");
     let kept = sheets.join("records");
-    std::fs::create_dir_all(&kept)
-        .with_context(|| format!("cannot create {}", kept.display()))?;
+    std::fs::create_dir_all(&kept).with_context(|| format!("cannot create {}", kept.display()))?;
     let mut records = Vec::new();
     for (i, spec) in runs.iter().enumerate() {
         let name = spec.name();

@@ -16,7 +16,7 @@ use crate::error::{Error, Result};
 use crate::model::deformation::{is_admissible, jacobian};
 use crate::model::energy::data::data_term_from_warped;
 use crate::model::energy::path::{EnergyValue, PathEnergy, StepEnergies};
-use crate::model::energy::regularizer::{regularizer, weighted_density};
+use crate::model::energy::regularizer::{mean_density, weighted_density};
 use crate::model::grid::to_host;
 use crate::model::grid::{Accumulation, Grid};
 use crate::model::layout::FeatureLayout;
@@ -376,33 +376,43 @@ impl Linearised {
 }
 
 impl DeformationProblem<'_> {
-    /// `S(φ) = K·R[φ, a_k]`, differentiable (float32 sum).
-    fn smooth(&self, phi: Tensor<4>) -> Tensor<1> {
+    /// `a_k · W(J(φ))` per pixel, differentiable where `φ` is: the summand of `S` and of its
+    /// decision sum.
+    fn density(&self, phi: Tensor<4>) -> Tensor<3> {
         let p = self.ipalm.energy.params();
-        regularizer(phi, self.a.clone(), p.lambda, p.mu).mul_scalar(self.steps)
+        weighted_density(phi, self.a.clone(), p.lambda, p.mu)
     }
 
-    /// `S(φ)` summed for decisions.
-    fn smooth_decision(&self, phi: Tensor<4>) -> Tensor<1> {
-        let p = self.ipalm.energy.params();
+    /// `S(φ) = K·R[φ, a_k]` from [`density`](Self::density), differentiable (float32 sum).
+    fn smooth(&self, density: Tensor<3>) -> Tensor<1> {
+        mean_density(density).mul_scalar(self.steps)
+    }
+
+    /// `S(φ)` summed for decisions, from [`density`](Self::density).
+    fn smooth_decision(&self, density: Tensor<3>) -> Tensor<1> {
         let grid = &self.ipalm.grid;
-        grid.decision_sum(weighted_density(phi, self.a.clone(), p.lambda, p.mu))
+        grid.decision_sum(density)
             .mul_scalar(self.steps / grid.pixels() as f64)
     }
 
     /// The true local energy `e(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` summed for
-    /// decisions (the safeguard's).
-    fn local_energy(&self, phi: Tensor<4>) -> LocalEnergy {
+    /// decisions (the safeguard's); `smooth`, when given, is `S(φ)` as a trial summed it.
+    fn local_energy(&self, phi: Tensor<4>, smooth: Option<f64>) -> LocalEnergy {
         let warped = self
             .ipalm
             .energy
             .bspline()
             .interpolate(self.coeffs_k.clone(), phi.clone());
-        self.local_energy_of(phi, warped)
+        self.local_energy_of(phi, warped, smooth)
     }
 
     /// [`local_energy`](Self::local_energy) with `T[f_k, φ]` already computed.
-    fn local_energy_of(&self, phi: Tensor<4>, warped: Tensor<4>) -> LocalEnergy {
+    fn local_energy_of(
+        &self,
+        phi: Tensor<4>,
+        warped: Tensor<4>,
+        smooth: Option<f64>,
+    ) -> LocalEnergy {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let data_scale = self.steps
@@ -410,16 +420,20 @@ impl DeformationProblem<'_> {
                 * 2.0
                 * ipalm.layout.channels() as f64
                 * grid.pixels() as f64);
-        let v = read_scalars(
-            grid,
-            vec![
-                self.smooth_decision(phi),
-                grid.decision_distance2(warped, self.f_km1.clone()),
-            ],
-        );
+        let distance = grid.decision_distance2(warped, self.f_km1.clone());
+        let (smooth, residual_norm2) = match smooth {
+            Some(smooth) => (smooth, read_scalars(grid, vec![distance])[0]),
+            None => {
+                let v = read_scalars(
+                    grid,
+                    vec![self.smooth_decision(self.density(phi)), distance],
+                );
+                (v[0], v[1])
+            }
+        };
         LocalEnergy {
-            value: v[0] + v[1] * data_scale,
-            residual_norm2: v[1],
+            value: smooth + residual_norm2 * data_scale,
+            residual_norm2,
         }
     }
 
@@ -432,7 +446,9 @@ impl DeformationProblem<'_> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let leaf = point.clone().detach().require_grad();
-        let grads = self.smooth(leaf.clone()).backward();
+        // One density for the gradient and the decision sum: the same values either way.
+        let density = self.density(leaf.clone());
+        let grads = self.smooth(density.clone()).backward();
         let gradient = leaf
             .grad(&grads)
             .expect("the regulariser depends on phi")
@@ -440,7 +456,7 @@ impl DeformationProblem<'_> {
         let v = read_scalars(
             grid,
             vec![
-                self.smooth_decision(point.clone()),
+                self.smooth_decision(density),
                 grid.decision_norm2(gradient.clone()),
             ],
         );
@@ -473,7 +489,8 @@ impl DeformationProblem<'_> {
 
     /// The backtracking search of SPEC §6 step 2 around `lin`, from the stored `L`: one
     /// read-back per trial (`min det J`, `S(φ_new)`, `⟨g, d⟩`, `‖d‖²`).
-    fn search(&self, lin: &Linearised, stored: f64) -> Result<Search<Tensor<4>>> {
+    /// Accepts `(φ_new, S(φ_new))`, the latter as the test summed it.
+    fn search(&self, lin: &Linearised, stored: f64) -> Result<Search<(Tensor<4>, f64)>> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let bt = ipalm.config.backtracking;
@@ -485,7 +502,7 @@ impl DeformationProblem<'_> {
                 grid,
                 vec![
                     jacobian(candidate.clone()).det().min().reshape([1]),
-                    self.smooth_decision(candidate.clone()),
+                    self.smooth_decision(self.density(candidate.clone())),
                     grid.decision_dot(lin.gradient.clone(), d.clone()),
                     grid.decision_norm2(d),
                 ],
@@ -495,7 +512,7 @@ impl DeformationProblem<'_> {
             Ok(if !(v[0] > 0.0) {
                 Trial::Inadmissible
             } else if bt.accepts(v[1], lin.smooth, v[2], v[3], l, slack) {
-                Trial::Accepted(candidate)
+                Trial::Accepted((candidate, v[1]))
             } else {
                 Trial::Rejected
             })
@@ -755,7 +772,7 @@ impl Ipalm {
         let mut search = problem.search(&lin, stored)?;
         step.trials += search.trials;
         step.inadmissible_trials += search.inadmissible;
-        let Some(mut phi_new) = search.accepted.take() else {
+        let Some((mut phi_new, mut smooth_new)) = search.accepted.take() else {
             return dropped(step, current);
         };
         let mut accepted_l = search.lipschitz;
@@ -767,12 +784,12 @@ impl Ipalm {
                 let sampler = self.energy.bspline().sampler(phi.clone());
                 self.warp_by_blocks(&sampler, problem.coeffs_k.clone())
             });
-            let at_phi = problem.local_energy_of(phi.clone(), warped);
+            let at_phi = problem.local_energy_of(phi.clone(), warped, None);
             current = Some(at_phi);
             let tolerance = self.slack() * at_phi.value.abs();
             // Written so that a NaN energy counts as a rise.
             let rises = |e: LocalEnergy| !(e.value <= at_phi.value + tolerance);
-            let mut energy = problem.local_energy(phi_new.clone());
+            let mut energy = problem.local_energy(phi_new.clone(), Some(smooth_new));
             if rises(energy) && extrapolated.is_some() {
                 // Restart the inertia: as L grows the prox tends to φ̃, which for the
                 // extrapolated point may lie above e(φ_k); around φ_k it tends to φ_k.
@@ -784,9 +801,9 @@ impl Ipalm {
                 let Some(restarted) = search.accepted.take() else {
                     return dropped(step, current);
                 };
-                phi_new = restarted;
+                (phi_new, smooth_new) = restarted;
                 accepted_l = search.lipschitz;
-                energy = problem.local_energy(phi_new.clone());
+                energy = problem.local_energy(phi_new.clone(), Some(smooth_new));
             }
             let mut l = accepted_l;
             while rises(energy) {
@@ -796,7 +813,7 @@ impl Ipalm {
                 step.safeguard_doublings += 1;
                 l *= 2.0;
                 phi_new = lin.candidate(l);
-                energy = problem.local_energy(phi_new.clone());
+                energy = problem.local_energy(phi_new.clone(), None);
             }
             step.residual_norm2 = Some(energy.residual_norm2);
         }

@@ -14,11 +14,18 @@ use crate::model::energy::density_op;
 /// - `a`: `[N, H, W]`
 /// - output: `[N]`
 pub fn regularizer(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> Tensor<1> {
-    let [n, _, h, w] = phi.dims();
-    weighted_density(phi, a, lambda, mu)
-        .reshape([n, h * w])
-        .mean_dim(1)
-        .reshape([n])
+    mean_density(weighted_density(phi, a, lambda, mu))
+}
+
+/// [`regularizer`] from its summand [`weighted_density`], for a caller that also sums the
+/// summand otherwise (the solver's decisions): the density is then evaluated once.
+///
+/// # Shapes
+/// - `density`: `[N, H, W]`
+/// - output: `[N]`
+pub fn mean_density(density: Tensor<3>) -> Tensor<1> {
+    let [n, h, w] = density.dims();
+    density.reshape([n, h * w]).mean_dim(1).reshape([n])
 }
 
 /// `a · W(J(φ))` at every pixel: the summand of [`regularizer`], for sums accumulated
