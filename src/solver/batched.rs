@@ -229,16 +229,18 @@ struct Pending {
 }
 
 impl Ipalm {
-    /// One sweep of the batched schedule.
+    /// One sweep of the batched schedule; `anisotropy`, when given, holds `a_1..a_K` of
+    /// `state` (`[K, H, W]`, [`super::ipalm::SweepCarry`]).
     pub(super) fn sweep_batched(
         &self,
         state: &mut LevelState,
         kind: SweepKind,
+        anisotropy: Option<Tensor<3>>,
     ) -> Result<SweepReport> {
         let k = state.steps();
         let mut report = SweepReport::empty(k);
         if kind == SweepKind::Joint {
-            let a = self.anisotropies(state);
+            let a = anisotropy.unwrap_or_else(|| self.anisotropies(state));
             let (phi_new, steps) = self.deformation_steps(state, a.clone())?;
             for (i, (phi, step)) in phi_new.into_iter().zip(steps).enumerate() {
                 state.l_phi[i] = step.lipschitz;

@@ -86,7 +86,7 @@ fn time_sweeps(
     let mut sweep = |state: &mut LevelState| -> Result<()> {
         let report = ipalm.sweep_carrying(state, kind, &mut carry)?;
         // Reading the energy back synchronises the backend, as the driver does.
-        ipalm.energy_after(state, Some(&report));
+        ipalm.energy_after_carrying(state, Some(&report), &mut carry);
         Ok(())
     };
     sweep(state)?;

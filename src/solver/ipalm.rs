@@ -368,10 +368,8 @@ struct Linearised {
 impl Linearised {
     /// `φ_new` for the trial `L`: the prox at `y = φ̃ − g/L`.
     fn candidate(&self, l: f64) -> Tensor<4> {
-        self.data.prox(
-            self.point.clone() - self.gradient.clone().mul_scalar(1.0 / l),
-            l,
-        )
+        self.data
+            .candidate(self.point.clone(), self.gradient.clone(), l)
     }
 }
 
@@ -605,14 +603,28 @@ impl Ipalm {
     /// of every channel were a quarter of a sweep's time at 256². The rest, and all of them
     /// without a report, are evaluated here.
     pub fn energy_after(&self, state: &LevelState, report: Option<&SweepReport>) -> StepEnergies {
+        self.energy_after_carrying(state, report, &mut SweepCarry::default())
+    }
+
+    /// [`energy_after`](Self::energy_after), leaving the anisotropies it computed in `carry`
+    /// for the next sweep of `state` ([`SweepCarry`]); `carry` must be the one that sweep
+    /// will be given, and `state` must not change in between.
+    pub fn energy_after_carrying(
+        &self,
+        state: &LevelState,
+        report: Option<&SweepReport>,
+        carry: &mut SweepCarry,
+    ) -> StepEnergies {
         let k = state.steps();
         let grid = &self.grid;
         let p = self.energy.params();
         let known = report.map_or_else(|| vec![None; k], |r| r.residual_norm2.clone());
         let missing: Vec<usize> = (0..k).filter(|&i| known[i].is_none()).collect();
+        let anisotropy = self.anisotropies(state);
+        carry.anisotropy = Some(anisotropy.clone());
         let mut parts = vec![grid.decision_sum_each(weighted_density(
             state.deformations(),
-            self.anisotropies(state),
+            anisotropy,
             p.lambda,
             p.mu,
         ))];
@@ -667,8 +679,9 @@ impl Ipalm {
         carry: &mut SweepCarry,
     ) -> Result<SweepReport> {
         if self.config.schedule == Schedule::Batched {
+            let anisotropy = carry.anisotropy.take();
             carry.clear();
-            return self.sweep_batched(state, kind);
+            return self.sweep_batched(state, kind, anisotropy);
         }
         let result = self.sweep_sequential(state, kind, carry);
         if result.is_err() {
@@ -690,12 +703,15 @@ impl Ipalm {
         // What the feature step of k computed that the deformation step of k + 1 needs; for
         // k = 1, what the previous sweep's feature step of 1 left (φ_1 and f_1 unchanged).
         let mut carried: Option<FrameProducts> = carry.take(1);
+        // Every a_k at once: step k reads f_k before its feature step changes it, so these are
+        // the values a computation at step k would give (a frame's anisotropy does not depend
+        // on the batch it is computed in).
+        let anisotropy = carry.anisotropy.take();
+        let anisotropy = (kind == SweepKind::Joint)
+            .then(|| anisotropy.unwrap_or_else(|| self.anisotropies(state)));
         for k in 1..=k_steps {
-            if kind == SweepKind::Joint {
-                let rgb = self.layout.rgb_part(state.f[k].clone());
-                let a = self.energy.anisotropy().compute(rgb);
-                let [_, h, w] = a.dims();
-                let a = a.reshape([1, h, w]);
+            if let Some(anisotropy) = &anisotropy {
+                let a = anisotropy.clone().narrow(0, k - 1, 1);
                 let (phi_new, step) = self.deformation_step(state, k, a.clone(), carried.take())?;
                 state.l_phi[k - 1] = step.lipschitz;
                 // Also after a restart: φ_k^prev ← φ_k, so the next sweep extrapolates along
@@ -985,21 +1001,29 @@ pub(super) struct FrameProducts {
 /// prefilter and one warp of all channels fewer per feature step. Costs `2·(K − 1)` frames
 /// of memory (SPEC §6 is unchanged: the values are the ones that would be recomputed).
 ///
+/// The energy evaluated after a sweep ([`Ipalm::energy_after_carrying`]) leaves here the
+/// anisotropies `a[f_1] … a[f_K]` of the state it evaluated: the next sweep's deformation
+/// steps need exactly these (step `k` reads `f_k` before its feature step changes it), so
+/// each frame's anisotropy is computed once per sweep instead of twice.
+///
 /// See [`Ipalm::sweep_carrying`].
 #[derive(Debug, Default)]
 pub struct SweepCarry {
     products: Vec<Option<FrameProducts>>,
+    /// `a_1..a_K` of the state as it is, `[K, H, W]`.
+    anisotropy: Option<Tensor<3>>,
 }
 
 impl SweepCarry {
     /// Forgets everything: the next sweep computes what it needs.
     pub fn clear(&mut self) {
         self.products.clear();
+        self.anisotropy = None;
     }
 
     /// Whether anything is held.
     pub fn is_empty(&self) -> bool {
-        self.products.iter().all(Option::is_none)
+        self.products.iter().all(Option::is_none) && self.anisotropy.is_none()
     }
 
     /// Room for `k_steps` (a carry of another `K` is forgotten).

@@ -3,7 +3,8 @@
 //!
 //! - [`backtracking`]: the one backtracking search on a Lipschitz estimate, with its give-up
 //!   rule, used by every step.
-//! - [`prox`]: the linearised data term of a deformation step and its pointwise prox.
+//! - [`prox`]: the linearised data term of a deformation step and its pointwise prox;
+//!   [`prox_op`] its trial fused into one custom op (flex).
 //! - [`ipalm`]: one sweep over the steps `k = 1..K`: deformation and feature blocks, the
 //!   safeguard and its inertia restart; `batched` runs the same steps as three stacked
 //!   blocks ([`ipalm::Schedule`]).
@@ -19,3 +20,4 @@ pub mod ipalm;
 pub mod multilevel;
 pub mod observer;
 pub mod prox;
+pub mod prox_op;

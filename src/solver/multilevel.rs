@@ -405,9 +405,10 @@ impl Multilevel {
 
             // The energy after a sweep, reusing the data terms the sweep evaluated (its report).
             let evaluate = |state: &LevelState,
-                            report: Option<&SweepReport>|
+                            report: Option<&SweepReport>,
+                            carry: &mut SweepCarry|
              -> std::result::Result<[f64; 3], String> {
-                let energy = ipalm.energy_after(state, report);
+                let energy = ipalm.energy_after_carrying(state, report, carry);
                 let total = energy.total();
                 if total.is_finite() {
                     return Ok([total, energy.regularizer_part(), energy.data_part()]);
@@ -480,7 +481,7 @@ impl Multilevel {
                 let initial = (start == 0).then(|| {
                     last_numbers
                         .take()
-                        .map_or_else(|| evaluate(&state, None), Ok)
+                        .map_or_else(|| evaluate(&state, None, &mut carry), Ok)
                 });
                 match initial {
                     None => {}
@@ -516,7 +517,8 @@ impl Multilevel {
                     }
                     match outcome.and_then(|report| {
                         // A fault injected after the sweep is not in its report.
-                        evaluate(&state, (!injected).then_some(&report)).map(|n| (report, n))
+                        evaluate(&state, (!injected).then_some(&report), &mut carry)
+                            .map(|n| (report, n))
                     }) {
                         Ok((report, numbers)) => {
                             last_numbers = Some(numbers);

@@ -8,6 +8,7 @@ use crate::model::grid::Grid;
 use crate::model::slopes;
 use crate::model::sobel::Sobel;
 use crate::model::warp::BSpline;
+use crate::solver::prox_op;
 
 /// The data term `D[f_{k−1}, f_k, φ]` linearised around `φ̃`, reduced to what the prox
 /// needs at each pixel: with `r_c = T[f_{k,c}, φ̃] − f_{k−1,c}` and
@@ -26,6 +27,9 @@ pub struct LinearisedData {
     a11: Tensor<4>,
     /// `Σ_c Λ_c (Λ_cᵀ φ̃ − r_c)`, `[1, 2, H, W]`.
     v: Tensor<4>,
+    /// The five planes above as the fused kernel left them, `[1, 5, H, W]` (flex): the
+    /// fused trial ([`super::prox_op`]) reads them.
+    moments: Option<Tensor<4>>,
 }
 
 /// The residual and slopes of the linearisation, for inspection and tests.
@@ -80,6 +84,7 @@ impl LinearisedData {
             a01: channel_sum(l0.clone() * l1.clone()),
             a11: channel_sum(l1.clone().square()),
             v: Tensor::cat(vec![channel_sum(l0 * q.clone()), channel_sum(l1 * q)], 1),
+            moments: None,
         }
     }
 
@@ -111,8 +116,28 @@ impl LinearisedData {
             a00: m.clone().narrow(1, 0, 1),
             a01: m.clone().narrow(1, 1, 1),
             a11: m.clone().narrow(1, 2, 1),
-            v: m.narrow(1, 3, 2),
+            v: m.clone().narrow(1, 3, 2),
+            moments: Some(m),
         }
+    }
+
+    /// The candidate of the trial `L` around `point` (`φ̃`) with the gradient `g` of the
+    /// smooth part: [`prox`](Self::prox) at `y = φ̃ − g/L`, in one fused pass where the
+    /// linearisation was fused ([`super::prox_op`]; the same values).
+    ///
+    /// # Shapes
+    /// - `point`, `gradient`, output: `[1, 2, H, W]`
+    pub fn candidate(&self, point: Tensor<4>, gradient: Tensor<4>, l: f64) -> Tensor<4> {
+        match &self.moments {
+            Some(m) => prox_op::prox_step(point, gradient, m.clone(), 1.0 / l, self.kappa / l),
+            None => self.prox(point - gradient.mul_scalar(1.0 / l), l),
+        }
+    }
+
+    /// [`candidate`](Self::candidate) always composed from tensor ops, for comparing it
+    /// with the fused one.
+    pub fn composed_candidate(&self, point: Tensor<4>, gradient: Tensor<4>, l: f64) -> Tensor<4> {
+        self.prox(point - gradient.mul_scalar(1.0 / l), l)
     }
 
     /// The prox for the trial `L` at `y = φ̃ − g / L`:

@@ -592,6 +592,29 @@ fn carried_and_fresh_sweeps(backend: Backend, channels: usize) {
             .sweep_carrying(&mut carried, kind, &mut carry)
             .unwrap();
         assert!(!carry.is_empty(), "{what}: nothing carried");
+        // As the driver runs it: the energy after the sweep leaves the anisotropies for the
+        // next one.
+        let evaluated = ipalm.energy_after(&fresh, Some(&a));
+        let left = ipalm.energy_after_carrying(&carried, Some(&b), &mut carry);
+        assert_eq!(
+            format!("{evaluated:?}"),
+            format!("{left:?}"),
+            "{what}: energy"
+        );
+        // What makes the carried anisotropies right: a frame's own, bit for bit, whether
+        // computed alone (as at step k) or with the others.
+        let all = ipalm.anisotropies(&carried);
+        for k in 1..=carried.steps() {
+            let alone = ipalm
+                .path_energy()
+                .anisotropy()
+                .compute(layout.rgb_part(carried.f[k].clone()));
+            assert_eq!(
+                values(all.clone().narrow(0, k - 1, 1)),
+                values(alone),
+                "{what}: a_{k}"
+            );
+        }
         assert_eq!(a.residual_norm2, b.residual_norm2, "{what}");
         assert_eq!(format!("{a:?}"), format!("{b:?}"), "{what}: decisions");
         assert_eq!(fresh.l_f, carried.l_f, "{what}");

@@ -1,0 +1,207 @@
+//! A deformation step's trial (SPEC §6 step 2) as one custom Burn op: the gradient step
+//! `y = φ̃ − g/L`, the pointwise 2 × 2 solve of the prox ([`super::prox::LinearisedData`])
+//! and the identity on the boundary, per pixel in one pass.
+//!
+//! Composed, a trial's prox is about twenty elementwise tensor ops on `H × W` planes (scale,
+//! shift, products, the determinant, two divisions, a `cat` and the boundary's
+//! `mask_where`), each a pass over memory with a fresh output; flex runs elementwise ops on
+//! one core, and at 64² each costs more in dispatch and allocation than in arithmetic. The
+//! backtracking runs two or three trials per step, so this was about a sixth of a 64² RGB
+//! sweep. Fused, every value takes the same float operations in the same order as the
+//! composed chain: the trials, and so the morph, are the same bit for bit (a test compares
+//! them).
+//!
+//! - flex: the host kernel below, split over the cores by rows.
+//! - autodiff: not differentiable (a trial is a constant of the search: its inputs are
+//!   detached).
+//! - ndarray and wgpu compose it ([`super::prox::LinearisedData::prox`]); the op is called
+//!   only with the fused slope moments, which only flex has.
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, backend_extension};
+use burn::tensor::Tensor;
+
+use crate::model::warp::host::{Real, Shared};
+
+/// The fused trial's primitive (flex only: the other backends compose it).
+#[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
+pub trait ProxOps: Backend {
+    /// Shapes and scalars as in [`prox_step`].
+    fn prox_step(
+        point: FloatTensor<Self>,
+        gradient: FloatTensor<Self>,
+        moments: FloatTensor<Self>,
+        inv_l: f64,
+        t: f64,
+    ) -> FloatTensor<Self>;
+}
+
+/// `x = (I + t Σ Λ Λᵀ)⁻¹ (y + t Σ Λ (Λᵀ φ̃ − r))` with `y = φ̃ − g · inv_l` at every pixel,
+/// `Id` on the boundary; `t = κ/L`, `inv_l = 1/L` (each rounded to the tensors' precision
+/// once, as a tensor op's scalar is).
+///
+/// # Shapes
+/// - `point` (`φ̃`), `gradient` (`g`): `[N, 2, H, W]`
+/// - `moments`: `[N, 5, H, W]`, [`crate::model::slopes::moments`] at `φ̃`
+/// - output: `[N, 2, H, W]`
+pub fn prox_step(
+    point: Tensor<4>,
+    gradient: Tensor<4>,
+    moments: Tensor<4>,
+    inv_l: f64,
+    t: f64,
+) -> Tensor<4> {
+    Tensor::from_dispatch(Dispatch::prox_step(
+        point.detach().into_dispatch(),
+        gradient.detach().into_dispatch(),
+        moments.detach().into_dispatch(),
+        inv_l,
+        t,
+    ))
+}
+
+/// Rows per task: enough work per task at 64², every core busy at 512².
+const ROWS_PER_TASK: usize = 16;
+
+/// The host kernel of [`prox_step`] on row-major slices: `point`, `gradient` and `out`
+/// `[N, 2, H, W]`, `moments` `[N, 5, H, W]`.
+pub fn host_prox_step<T: Real>(
+    point: &[T],
+    gradient: &[T],
+    moments: &[T],
+    [n, h, w]: [usize; 3],
+    (inv_l, t): (f64, f64),
+    out: &mut [T],
+) {
+    use rayon::prelude::*;
+    let plane = h * w;
+    assert_eq!(point.len(), n * 2 * plane, "linearisation point");
+    assert_eq!(gradient.len(), n * 2 * plane, "gradient");
+    assert_eq!(moments.len(), n * 5 * plane, "moments");
+    assert_eq!(out.len(), n * 2 * plane, "prox");
+    let (inv_l, t, one) = (T::from_f64(inv_l), T::from_f64(t), T::from_f64(1.0));
+    let blocks = h.div_ceil(ROWS_PER_TASK);
+    let target = Shared(out.as_mut_ptr());
+    (0..n * blocks).into_par_iter().for_each(|task| {
+        let (b, block) = (task / blocks, task % blocks);
+        let (p, g) = (&point[b * 2 * plane..], &gradient[b * 2 * plane..]);
+        let m = &moments[b * 5 * plane..];
+        for i in block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h) {
+            for j in 0..w {
+                let at = i * w + j;
+                let (x0, x1) = if i == 0 || j == 0 || i + 1 == h || j + 1 == w {
+                    (T::from_i32(i as i32), T::from_i32(j as i32))
+                } else {
+                    // The composed chain's operations, in its order (`LinearisedData::solve`).
+                    let y0 = p[at] - g[at] * inv_l;
+                    let y1 = p[plane + at] - g[plane + at] * inv_l;
+                    let m00 = m[at] * t + one;
+                    let m01 = m[plane + at] * t;
+                    let m11 = m[2 * plane + at] * t + one;
+                    let b0 = y0 + m[3 * plane + at] * t;
+                    let b1 = y1 + m[4 * plane + at] * t;
+                    let det = m00 * m11 - m01 * m01;
+                    ((m11 * b0 - m01 * b1) / det, (m00 * b1 - m01 * b0) / det)
+                };
+                // SAFETY: row i of image b is this task's alone, in both components.
+                unsafe {
+                    *target.get(b * 2 * plane + at) = x0;
+                    *target.get(b * 2 * plane + plane + at) = x1;
+                }
+            }
+        }
+    });
+}
+
+#[cfg(feature = "flex")]
+mod flex {
+    use burn::backend::Flex;
+    use burn::backend::flex::FlexTensor;
+    use burn::tensor::{DType, TensorData};
+
+    use super::{ProxOps, host_prox_step};
+    use crate::model::host_view::HostView;
+    use crate::model::warp::host::Real;
+
+    fn typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
+        point: &HostView,
+        gradient: &HostView,
+        moments: &HostView,
+        scalars: (f64, f64),
+    ) -> TensorData {
+        let s = point.shape();
+        assert!(
+            s.len() == 4
+                && s[1] == 2
+                && gradient.shape() == s
+                && moments.shape() == [s[0], 5, s[2], s[3]],
+            "prox step: point {s:?}, gradient {:?} and moments {:?} do not fit",
+            gradient.shape(),
+            moments.shape()
+        );
+        let mut out = vec![T::default(); s.iter().product()];
+        host_prox_step(
+            point.values(),
+            gradient.values(),
+            moments.values(),
+            [s[0], s[2], s[3]],
+            scalars,
+            &mut out,
+        );
+        TensorData::new(out, s)
+    }
+
+    impl ProxOps for Flex {
+        fn prox_step(
+            point: FlexTensor,
+            gradient: FlexTensor,
+            moments: FlexTensor,
+            inv_l: f64,
+            t: f64,
+        ) -> FlexTensor {
+            let (point, gradient, moments) = (
+                HostView::new(point),
+                HostView::new(gradient),
+                HostView::new(moments),
+            );
+            assert!(
+                point.dtype() == gradient.dtype() && point.dtype() == moments.dtype(),
+                "prox step: dtypes differ"
+            );
+            let scalars = (inv_l, t);
+            FlexTensor::from_data(match point.dtype() {
+                DType::F32 => typed::<f32>(&point, &gradient, &moments, scalars),
+                DType::F64 => typed::<f64>(&point, &gradient, &moments, scalars),
+                other => panic!("the prox runs in float32 or float64, not {other:?}"),
+            })
+        }
+    }
+}
+
+mod autodiff {
+    use burn::backend::Autodiff;
+    use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+    use burn::backend::tensor::FloatTensor;
+
+    use super::ProxOps;
+
+    /// A trial is a constant of the search ([`super::prox_step`] detaches its inputs).
+    impl<B: ProxOps, C: CheckpointStrategy> ProxOps for Autodiff<B, C> {
+        fn prox_step(
+            point: FloatTensor<Self>,
+            gradient: FloatTensor<Self>,
+            moments: FloatTensor<Self>,
+            inv_l: f64,
+            t: f64,
+        ) -> FloatTensor<Self> {
+            assert!(
+                !point.is_tracked() && !gradient.is_tracked() && !moments.is_tracked(),
+                "the prox step is not differentiable"
+            );
+            let (point, _) = point.into_parts();
+            let (gradient, _) = gradient.into_parts();
+            let (moments, _) = moments.into_parts();
+            FloatTensor::<Self>::new(B::prox_step(point, gradient, moments, inv_l, t))
+        }
+    }
+}
