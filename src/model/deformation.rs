@@ -2,6 +2,8 @@
 
 use burn::tensor::Tensor;
 
+use crate::backend::Capabilities;
+use crate::model::energy::density_op;
 use crate::model::grid::Grid;
 use crate::model::grid::to_host;
 
@@ -25,6 +27,24 @@ impl Jacobian {
     pub fn det(&self) -> Tensor<3> {
         self.j00.clone() * self.j11.clone() - self.j01.clone() * self.j10.clone()
     }
+}
+
+/// The smallest `det J` of each deformation of the batch, detached, `[N]`: one fused pass on
+/// a backend with the fused density ([`crate::backend::Capabilities::fused_density`]; the
+/// same values), the composed Jacobian otherwise.
+///
+/// # Shapes
+/// - `phi`: `[N, 2, H, W]`
+pub fn min_det_each(phi: Tensor<4>) -> Tensor<1> {
+    if Capabilities::of(&phi.device()).fused_density {
+        return density_op::min_det(phi);
+    }
+    let [n, _, h, w] = phi.dims();
+    jacobian(phi.detach())
+        .det()
+        .reshape([n, h * w])
+        .min_dim(1)
+        .reshape([n])
 }
 
 /// Forward difference along `dim` (1 = rows, 2 = columns) of `[N, H, W]` maps, with `fill`
@@ -74,11 +94,7 @@ pub fn admissible_each(grid: &Grid, phi: Tensor<4>) -> Vec<bool> {
         .reshape([n, 2 * h * w])
         .max_dim(1)
         .reshape([n]);
-    let min_det = jacobian(phi)
-        .det()
-        .reshape([n, h * w])
-        .min_dim(1)
-        .reshape([n]);
+    let min_det = min_det_each(phi);
     let values = to_host(Tensor::cat(vec![boundary_max, min_det], 0));
     // A NaN anywhere fails both comparisons, so it is never admissible.
     (0..n)

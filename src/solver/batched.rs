@@ -15,7 +15,7 @@
 use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
-use crate::model::deformation::{admissible_each, jacobian};
+use crate::model::deformation::{admissible_each, min_det_each};
 use crate::model::energy::data::data_term_from_warped;
 use crate::model::energy::regularizer::{regularizer, weighted_density};
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
@@ -176,15 +176,10 @@ impl Deformations<'_> {
             let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
             let candidates = lin.candidates(&l);
             let d = candidates.clone() - lin.point.clone();
-            let [_, _, h, w] = candidates.dims();
             let v = read_scalars(
                 grid,
                 vec![
-                    jacobian(candidates.clone())
-                        .det()
-                        .reshape([k, h * w])
-                        .min_dim(1)
-                        .reshape([k]),
+                    min_det_each(candidates.clone()),
                     self.smooth_decision(candidates.clone()),
                     grid.decision_sum_each(lin.gradient.clone() * d.clone()),
                     grid.decision_sum_each(d.square()),

@@ -13,7 +13,7 @@
 use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
-use crate::model::deformation::{is_admissible, jacobian};
+use crate::model::deformation::{is_admissible, min_det_each};
 use crate::model::energy::data::data_term_from_warped;
 use crate::model::energy::path::{EnergyValue, PathEnergy, StepEnergies};
 use crate::model::energy::regularizer::{mean_density, weighted_density};
@@ -499,7 +499,7 @@ impl DeformationProblem<'_> {
             let v = read_scalars(
                 grid,
                 vec![
-                    jacobian(candidate.clone()).det().min().reshape([1]),
+                    min_det_each(candidate.clone()),
                     self.smooth_decision(self.density(candidate.clone())),
                     grid.decision_dot(lin.gradient.clone(), d.clone()),
                     grid.decision_norm2(d),

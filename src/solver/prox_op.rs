@@ -205,3 +205,63 @@ mod autodiff {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_kernel_solves_each_pixels_system_and_keeps_the_boundary() {
+        // Two images, heights across the row blocks, `Σ Λ Λᵀ ⪰ 0` as the moments are.
+        let [n, h, w] = [2, 37, 11];
+        let plane = h * w;
+        let value = |i: usize, seed: f64| (i as f64 * 0.613 + seed).sin();
+        let point: Vec<f64> = (0..n * 2 * plane).map(|i| 5.0 * value(i, 0.2)).collect();
+        let gradient: Vec<f64> = (0..n * 2 * plane).map(|i| value(i, 1.1)).collect();
+        let mut moments = vec![0.0; n * 5 * plane];
+        for b in 0..n {
+            for p in 0..plane {
+                let (l0, l1) = (value(b * plane + p, 2.3), value(b * plane + p, 3.7));
+                let q = value(b * plane + p, 4.1);
+                let m = [l0 * l0, l0 * l1, l1 * l1, l0 * q, l1 * q];
+                for (k, v) in m.into_iter().enumerate() {
+                    moments[(b * 5 + k) * plane + p] = v;
+                }
+            }
+        }
+        let (inv_l, t) = (0.25, 3.0);
+        let mut out = vec![f64::NAN; n * 2 * plane];
+        host_prox_step(&point, &gradient, &moments, [n, h, w], (inv_l, t), &mut out);
+        for b in 0..n {
+            for i in 0..h {
+                for j in 0..w {
+                    let p = i * w + j;
+                    let at = |c: usize| (b * 2 + c) * plane + p;
+                    let x = [out[at(0)], out[at(1)]];
+                    if i == 0 || j == 0 || i == h - 1 || j == w - 1 {
+                        assert_eq!(x, [i as f64, j as f64], "boundary ({b}, {i}, {j})");
+                        continue;
+                    }
+                    let m = |k: usize| moments[(b * 5 + k) * plane + p];
+                    // (I + t M) x = φ̃ − g/L + t v
+                    let rhs = [
+                        point[at(0)] - gradient[at(0)] * inv_l + t * m(3),
+                        point[at(1)] - gradient[at(1)] * inv_l + t * m(4),
+                    ];
+                    let lhs = [
+                        (1.0 + t * m(0)) * x[0] + t * m(1) * x[1],
+                        t * m(1) * x[0] + (1.0 + t * m(2)) * x[1],
+                    ];
+                    for c in 0..2 {
+                        assert!(
+                            (lhs[c] - rhs[c]).abs() <= 1e-12 * (1.0 + rhs[c].abs()),
+                            "({b}, {i}, {j}) component {c}: {} vs {}",
+                            lhs[c],
+                            rhs[c]
+                        );
+                    }
+                }
+            }
+        }
+    }
+}

@@ -74,6 +74,15 @@ fn prox(backend: Backend) {
     {
         let y = phi_tilde.clone() - g.clone().mul_scalar(1.0 / l);
         check(&format!("phi_new_L{i}"), values(around.prox(y, l)));
+        // The trial as the solver takes it: one fused op on flex, whose values are the
+        // composed chain's bit for bit (so fusing it changed no decision of any morph).
+        let candidate = values(around.candidate(phi_tilde.clone(), g.clone(), l));
+        check(&format!("phi_new_L{i}"), candidate.clone());
+        assert_eq!(
+            candidate,
+            values(around.composed_candidate(phi_tilde.clone(), g.clone(), l)),
+            "{backend:?}, L{i}: the fused trial differs from the composed one"
+        );
     }
 }
 

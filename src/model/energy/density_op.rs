@@ -42,6 +42,8 @@ pub trait DensityOps: Backend {
         lambda: f64,
         mu: f64,
     ) -> FloatTensor<Self>;
+    /// The smallest `det J(φ_n)` of each deformation, `[N]`; NaN where a determinant is.
+    fn min_det(phi: FloatTensor<Self>) -> FloatTensor<Self>;
 }
 
 /// `a · W(J(φ))` at every pixel by the fused op, differentiable in `φ` and `a`. Only on a
@@ -56,6 +58,16 @@ pub fn weighted_density(phi: Tensor<4>, a: Tensor<3>, lambda: f64, mu: f64) -> T
         lambda,
         mu,
     ))
+}
+
+/// The smallest `det J` of each deformation by the fused op (not differentiable: the
+/// admissibility test of a trial). Only on a backend that serves it (flex); the composed
+/// equivalent is [`crate::model::deformation::min_det_each`].
+///
+/// # Shapes
+/// - `phi`: `[N, 2, H, W]`; output `[N]`
+pub fn min_det(phi: Tensor<4>) -> Tensor<1> {
+    Tensor::from_dispatch(Dispatch::min_det(phi.detach().into_dispatch()))
 }
 
 /// Rows per task: enough work per task at 64², every core busy at 512².
@@ -161,6 +173,42 @@ pub fn host_density<T: Real>(
     });
 }
 
+/// The host kernel of [`min_det`]: `phi` `[N, 2, H, W]`, one value per deformation. The
+/// determinant is the composed `Jacobian::det`'s product and difference, so the minimum is
+/// the same value; a NaN determinant makes the result NaN (an inadmissible trial).
+pub fn host_min_det<T: Real>(phi: &[T], [n, h, w]: [usize; 3]) -> Vec<T> {
+    use rayon::prelude::*;
+    let plane = h * w;
+    check_lengths(phi, &[], [n, h, w]);
+    let blocks = h.div_ceil(ROWS_PER_TASK);
+    (0..n)
+        .map(|b| {
+            let (p0, p1) = planes(phi, b, plane);
+            let (least, nan) = (0..blocks)
+                .into_par_iter()
+                .map(|block| {
+                    let (mut least, mut nan) = (T::from_f64(f64::INFINITY), false);
+                    for i in block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h) {
+                        for j in 0..w {
+                            let [j00, j01, j10, j11] = jacobian_at(p0, p1, i, j, h, w);
+                            let det = j00 * j11 - j01 * j10;
+                            nan |= det != det;
+                            if det < least {
+                                least = det;
+                            }
+                        }
+                    }
+                    (least, nan)
+                })
+                .reduce(
+                    || (T::from_f64(f64::INFINITY), false),
+                    |(a, x), (b, y)| (if b < a { b } else { a }, x || y),
+                );
+            if nan { T::from_f64(f64::NAN) } else { least }
+        })
+        .collect()
+}
+
 /// The host kernel of [`DensityOps::weighted_density_grad`]: `g` and `a` `[N, H, W]`, `out`
 /// `[N, 2, H, W]`.
 pub fn host_density_grad<T: Real>(
@@ -236,7 +284,7 @@ mod flex {
     use burn::backend::flex::FlexTensor;
     use burn::tensor::{DType, TensorData};
 
-    use super::{DensityOps, host_density, host_density_grad};
+    use super::{DensityOps, host_density, host_density_grad, host_min_det};
     use crate::model::host_view::HostView;
     use crate::model::warp::host::Real;
 
@@ -294,7 +342,21 @@ mod flex {
         };
     }
 
+    fn min_det_typed<T: Kernel>(phi: &HostView) -> TensorData {
+        let s = phi.shape();
+        assert!(
+            s.len() == 4 && s[1] == 2,
+            "min det J: deformation {s:?} is not [N, 2, H, W]"
+        );
+        TensorData::new(host_min_det::<T>(phi.values(), [s[0], s[2], s[3]]), [s[0]])
+    }
+
     impl DensityOps for Flex {
+        fn min_det(phi: FlexTensor) -> FlexTensor {
+            let phi = HostView::new(phi);
+            FlexTensor::from_data(typed!(phi.dtype(), min_det_typed(&phi)))
+        }
+
         fn weighted_density(phi: FlexTensor, a: FlexTensor, lambda: f64, mu: f64) -> FlexTensor {
             let (phi, a) = (HostView::new(phi), HostView::new(a));
             assert_eq!(phi.dtype(), a.dtype(), "weighted density: dtypes differ");
@@ -351,6 +413,12 @@ mod autodiff {
     }
 
     impl<B: DensityOps, C: CheckpointStrategy> DensityOps for Autodiff<B, C> {
+        fn min_det(phi: FloatTensor<Self>) -> FloatTensor<Self> {
+            assert!(!phi.is_tracked(), "min det J is not differentiable");
+            let (phi, _) = phi.into_parts();
+            FloatTensor::<Self>::new(B::min_det(phi))
+        }
+
         fn weighted_density(
             phi: FloatTensor<Self>,
             a: FloatTensor<Self>,
@@ -471,6 +539,51 @@ mod tests {
                 );
             }
         }
+    }
+
+    #[test]
+    fn the_smallest_determinant_is_specs_and_nan_wins() {
+        // SPEC §2's determinant per pixel: the naive density is infinite exactly where it is
+        // not positive, and its formula's determinant is recomputed here.
+        for (dims, amplitude) in [([2, 5, 6], 0.1), ([1, 19, 7], 0.3), ([3, 8, 9], 2.0)] {
+            let [n, h, w] = dims;
+            let phi = deformation(n, h, w, amplitude);
+            let got = host_min_det(&phi, dims);
+            for b in 0..n {
+                let plane = h * w;
+                let v = |axis: usize, i: usize, j: usize| phi[(b * 2 + axis) * plane + i * w + j];
+                let mut least = f64::INFINITY;
+                for i in 0..h {
+                    for j in 0..w {
+                        let d0 = |a| {
+                            if i + 1 < h {
+                                v(a, i + 1, j) - v(a, i, j)
+                            } else {
+                                f64::from(u8::from(a == 0))
+                            }
+                        };
+                        let d1 = |a| {
+                            if j + 1 < w {
+                                v(a, i, j + 1) - v(a, i, j)
+                            } else {
+                                f64::from(u8::from(a == 1))
+                            }
+                        };
+                        least = least.min(d0(0) * d1(1) - d1(0) * d0(1));
+                    }
+                }
+                assert_eq!(got[b], least, "{dims:?} image {b}");
+            }
+            // The large displacement folds somewhere.
+            if amplitude > 1.0 {
+                assert!(got.iter().any(|&d| d <= 0.0), "{dims:?}: {got:?}");
+            }
+        }
+        let [n, h, w] = [2, 20, 5];
+        let mut phi = deformation(n, h, w, 0.1);
+        phi[2 * h * w + 17 * w + 3] = f64::NAN;
+        let got = host_min_det(&phi, [n, h, w]);
+        assert!(got[0].is_finite() && got[1].is_nan(), "{got:?}");
     }
 
     #[test]
