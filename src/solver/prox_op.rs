@@ -4,12 +4,10 @@
 //!
 //! Composed, a trial's prox is about twenty elementwise tensor ops on `H × W` planes (scale,
 //! shift, products, the determinant, two divisions, a `cat` and the boundary's
-//! `mask_where`), each a pass over memory with a fresh output; flex runs elementwise ops on
-//! one core, and at 64² each costs more in dispatch and allocation than in arithmetic. The
-//! backtracking runs two or three trials per step, so this was about a sixth of a 64² RGB
-//! sweep. Fused, every value takes the same float operations in the same order as the
-//! composed chain: the trials, and so the morph, are the same bit for bit (a test compares
-//! them).
+//! `mask_where`), each a pass over memory into a fresh output, and flex runs elementwise ops
+//! on one core; the backtracking runs two or three trials per step. Fused, every value takes
+//! the same float operations in the same order as the composed chain: the trials, and so
+//! the morph, are the same bit for bit (a test compares them).
 //!
 //! - flex: the host kernel below, split over the cores by rows.
 //! - autodiff: not differentiable (a trial is a constant of the search: its inputs are
