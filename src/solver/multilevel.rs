@@ -403,7 +403,8 @@ impl Multilevel {
             };
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
 
-            // The energy after a sweep, reusing the data terms the sweep evaluated (its report).
+            // The energy after a sweep, reusing the data terms the sweep evaluated (its report)
+            // and leaving the anisotropies it computed for the next sweep (`carry`).
             let evaluate = |state: &LevelState,
                             report: Option<&SweepReport>,
                             carry: &mut SweepCarry|
