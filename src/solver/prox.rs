@@ -130,12 +130,12 @@ impl LinearisedData {
     pub fn candidate(&self, point: Tensor<4>, gradient: Tensor<4>, l: f64) -> Tensor<4> {
         match &self.moments {
             Some(m) => prox_op::prox_step(point, gradient, m.clone(), 1.0 / l, self.kappa / l),
-            None => self.prox(point - gradient.mul_scalar(1.0 / l), l),
+            None => self.composed_candidate(point, gradient, l),
         }
     }
 
-    /// [`candidate`](Self::candidate) always composed from tensor ops, for comparing it
-    /// with the fused one.
+    /// [`candidate`](Self::candidate) composed from tensor ops: what every backend without
+    /// the fused moments runs, and what the fused op is compared with.
     pub fn composed_candidate(&self, point: Tensor<4>, gradient: Tensor<4>, l: f64) -> Tensor<4> {
         self.prox(point - gradient.mul_scalar(1.0 / l), l)
     }
