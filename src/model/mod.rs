@@ -10,7 +10,8 @@
 //!   separable application to images.
 //! - [`warp`]: the cubic B-spline warp `T[f, φ]` (SPEC §1).
 //! - [`deformation`]: Jacobian and admissibility (SPEC §0, §2).
-//! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5).
+//! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5);
+//!   `elementary`: vectorisable `ln` and `exp` for its float32 kernels.
 //! - [`params`]: the energy's parameters with SPEC §9's defaults.
 //! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6); [`slopes`]:
 //!   the linearisation's per-pixel moments over the channels, fused.
@@ -21,6 +22,7 @@
 
 pub mod decision;
 pub mod deformation;
+pub(crate) mod elementary;
 pub mod energy;
 pub mod feature_model;
 pub mod grid;

@@ -22,7 +22,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::Tensor;
 
-use crate::model::warp::host::{Real, Shared};
+use crate::model::warp::host::{Real, Shared, has_avx2, simd_dispatch};
 
 /// The density's primitives (flex only: the other backends compose it).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
@@ -128,6 +128,191 @@ fn density_grad_at<T: Real>([j00, j01, j10, j11]: [T; 4], lambda: T, mu: T) -> [
     ]
 }
 
+/// Pixels per vectorised group: eight float32 lanes of AVX2.
+const LANES: usize = 8;
+
+/// [`jacobian_at`] of the eight pixels `(i, j + l)`, `l < 8`, of an interior run (`i + 1 < h`,
+/// `j + 8 < w`: no boundary rule applies); `at = i·w + j`. Entries first, lanes second.
+#[inline(always)]
+fn jacobians8<T: Real>(p0: &[T], p1: &[T], at: usize, w: usize) -> [[T; LANES]; 4] {
+    let (p0, p1) = (&p0[at..at + w + LANES], &p1[at..at + w + LANES]);
+    [
+        std::array::from_fn(|l| p0[l + w] - p0[l]),
+        std::array::from_fn(|l| p0[l + 1] - p0[l]),
+        std::array::from_fn(|l| p1[l + w] - p1[l]),
+        std::array::from_fn(|l| p1[l + 1] - p1[l]),
+    ]
+}
+
+/// `det J`, `log det J` and `exp((log det J)²)` of eight Jacobians, by the type's
+/// vectorisable [`Real::ln8`] and [`Real::exp8`] (lanes where `det J ≤ 0` hold garbage the
+/// callers replace).
+#[inline(always)]
+fn volume_terms8<T: Real>([j00, j01, j10, j11]: &[[T; LANES]; 4]) -> [[T; LANES]; 3] {
+    let det: [T; LANES] = std::array::from_fn(|l| j00[l] * j11[l] - j01[l] * j10[l]);
+    let log_det = T::ln8(det);
+    let growth = T::exp8(std::array::from_fn(|l| log_det[l] * log_det[l]));
+    [det, log_det, growth]
+}
+
+/// [`density_at`] of eight Jacobians, the same operations lane by lane.
+#[inline(always)]
+fn density8<T: Real>(j: [[T; LANES]; 4], half_lambda: T, mu: T) -> [T; LANES] {
+    let (one, half) = (T::from_f64(1.0), T::from_f64(0.5));
+    let [det, _, growth] = volume_terms8(&j);
+    let [j00, j01, j10, j11] = j;
+    std::array::from_fn(|l| {
+        let volume = (growth[l] - one) * half_lambda;
+        let (d00, d11, shear) = (j00[l] - one, j11[l] - one, j01[l] + j10[l]);
+        let strain = (d00 * d00 + d11 * d11 + shear * shear * half) * mu;
+        if det[l] <= T::default() {
+            T::from_f64(f64::INFINITY)
+        } else {
+            volume + strain
+        }
+    })
+}
+
+/// [`density_grad_at`] of eight Jacobians, the same operations lane by lane.
+#[inline(always)]
+fn density_grad8<T: Real>(j: [[T; LANES]; 4], lambda: T, mu: T) -> [[T; LANES]; 4] {
+    let (zero, one, two) = (T::default(), T::from_f64(1.0), T::from_f64(2.0));
+    let [det, log_det, growth] = volume_terms8(&j);
+    let [j00, j01, j10, j11] = j;
+    let factor: [T; LANES] = std::array::from_fn(|l| growth[l] * log_det[l] * lambda * (one / det[l]));
+    let shear: [T; LANES] = std::array::from_fn(|l| (j01[l] + j10[l]) * mu);
+    let admissible = |l: usize, v: T| if det[l] > zero { v } else { zero };
+    [
+        std::array::from_fn(|l| admissible(l, factor[l] * j11[l] + (j00[l] - one) * two * mu)),
+        std::array::from_fn(|l| admissible(l, shear[l] - factor[l] * j10[l])),
+        std::array::from_fn(|l| admissible(l, shear[l] - factor[l] * j01[l])),
+        std::array::from_fn(|l| admissible(l, factor[l] * j00[l] + (j11[l] - one) * two * mu)),
+    ]
+}
+
+/// Visits the pixels of rows `rows` as runs of eight interior pixels (`visit(i, j, true)`,
+/// `j` the run's first column) and single pixels (`visit(i, j, false)`): the last row and
+/// the pixels from `w − 8` on go one at a time, where the boundary rule of [`jacobian_at`]
+/// applies.
+#[inline(always)]
+fn for_each_run(
+    rows: std::ops::Range<usize>,
+    [h, w]: [usize; 2],
+    mut visit: impl FnMut(usize, usize, bool),
+) {
+    for i in rows {
+        let mut j = 0;
+        if i + 1 < h {
+            while j + LANES < w {
+                visit(i, j, true);
+                j += LANES;
+            }
+        }
+        for j in j..w {
+            visit(i, j, false);
+        }
+    }
+}
+
+/// [`host_density`]'s rows `rows` of one image: `p0`, `p1`, `a` that image's planes, `out`
+/// its rows `rows`.
+#[inline(always)]
+fn density_rows<T: Real>(
+    p0: &[T],
+    p1: &[T],
+    a: &[T],
+    rows: std::ops::Range<usize>,
+    [h, w]: [usize; 2],
+    [half_lambda, mu]: [T; 2],
+    out: &mut [T],
+) {
+    let first = rows.start * w;
+    for_each_run(rows, [h, w], |i, j, run| {
+        let at = i * w + j;
+        if run {
+            let v = density8(jacobians8(p0, p1, at, w), half_lambda, mu);
+            let out = &mut out[at - first..at - first + LANES];
+            for ((o, v), a) in out.iter_mut().zip(v).zip(&a[at..at + LANES]) {
+                *o = *a * v;
+            }
+        } else {
+            out[at - first] = a[at] * density_at(jacobian_at(p0, p1, i, j, h, w), half_lambda, mu);
+        }
+    });
+}
+
+/// The first pass of [`host_density_grad`] on rows `rows` of one image: `g a ∂W/∂J` into the
+/// image's four entry planes at `entries`; `p0`, `p1`, `a`, `g` that image's planes.
+///
+/// # Safety
+///
+/// `entries` holds four `h × w` planes, and rows `rows` of them are the caller's alone.
+#[inline(always)]
+#[allow(clippy::too_many_arguments)]
+unsafe fn density_grad_rows<T: Real>(
+    p0: &[T],
+    p1: &[T],
+    a: &[T],
+    g: &[T],
+    rows: std::ops::Range<usize>,
+    [h, w]: [usize; 2],
+    [lambda, mu]: [T; 2],
+    entries: Shared<T>,
+) {
+    let plane = h * w;
+    for_each_run(rows, [h, w], |i, j, run| {
+        let at = i * w + j;
+        if run {
+            let d = density_grad8(jacobians8(p0, p1, at, w), lambda, mu);
+            for (m, d) in d.into_iter().enumerate() {
+                for (l, v) in d.into_iter().enumerate() {
+                    // SAFETY: the caller's promise.
+                    unsafe { *entries.get(m * plane + at + l) = g[at + l] * a[at + l] * v };
+                }
+            }
+        } else {
+            let d = density_grad_at(jacobian_at(p0, p1, i, j, h, w), lambda, mu);
+            for (m, v) in d.into_iter().enumerate() {
+                // SAFETY: the caller's promise.
+                unsafe { *entries.get(m * plane + at) = g[at] * a[at] * v };
+            }
+        }
+    });
+}
+
+simd_dispatch!(fn density_rows_simd<T: Real>(
+    p0: &[T], p1: &[T], a: &[T], rows: std::ops::Range<usize>, hw: [usize; 2],
+    coefficients: [T; 2], out: &mut [T]
+) => density_rows);
+
+/// [`density_grad_rows`] for the CPU's widest lanes.
+///
+/// # Safety
+///
+/// As [`density_grad_rows`].
+unsafe fn density_grad_rows_simd<T: Real>(
+    p0: &[T], p1: &[T], a: &[T], g: &[T], rows: std::ops::Range<usize>, hw: [usize; 2],
+    coefficients: [T; 2], entries: Shared<T>,
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        unsafe fn wide<T: Real>(
+            p0: &[T], p1: &[T], a: &[T], g: &[T], rows: std::ops::Range<usize>,
+            hw: [usize; 2], coefficients: [T; 2], entries: Shared<T>,
+        ) {
+            // SAFETY: the caller's promise.
+            unsafe { density_grad_rows(p0, p1, a, g, rows, hw, coefficients, entries) }
+        }
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's promise.
+            return unsafe { wide(p0, p1, a, g, rows, hw, coefficients, entries) };
+        }
+    }
+    // SAFETY: the caller's promise.
+    unsafe { density_grad_rows(p0, p1, a, g, rows, hw, coefficients, entries) }
+}
+
 /// The two planes `(φ₀, φ₁)` of deformation `b` in `phi` (`[N, 2, H, W]`, `plane = H·W`).
 #[inline]
 fn planes<T>(phi: &[T], b: usize, plane: usize) -> (&[T], &[T]) {
@@ -162,14 +347,13 @@ pub fn host_density<T: Real>(
     (0..n * blocks).into_par_iter().for_each(|task| {
         let (b, block) = (task / blocks, task % blocks);
         let (p0, p1) = planes(phi, b, plane);
-        for i in block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h) {
-            for j in 0..w {
-                let at = b * plane + i * w + j;
-                let v = a[at] * density_at(jacobian_at(p0, p1, i, j, h, w), lambda, mu);
-                // SAFETY: row i of image b is this task's alone.
-                unsafe { *target.get(at) = v };
-            }
-        }
+        let rows = block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h);
+        // SAFETY: rows `rows` of image b are this task's alone.
+        let out = unsafe {
+            std::slice::from_raw_parts_mut(target.get(b * plane + rows.start * w), rows.len() * w)
+        };
+        let a = &a[b * plane..(b + 1) * plane];
+        density_rows_simd(p0, p1, a, rows, [h, w], [lambda, mu], out);
     });
 }
 
@@ -232,21 +416,13 @@ pub fn host_density_grad<T: Real>(
         .for_each(|(b, entries)| {
             let (p0, p1) = planes(phi, b, plane);
             let out = Shared(entries.as_mut_ptr());
+            let (a, g) = (&a[b * plane..(b + 1) * plane], &g[b * plane..(b + 1) * plane]);
             (0..h.div_ceil(ROWS_PER_TASK))
                 .into_par_iter()
                 .for_each(|block| {
-                    for i in block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h) {
-                        for j in 0..w {
-                            let p = i * w + j;
-                            let weight = g[b * plane + p] * a[b * plane + p];
-                            let d = density_grad_at(jacobian_at(p0, p1, i, j, h, w), lambda, mu);
-                            for (m, v) in d.into_iter().enumerate() {
-                                // SAFETY: row i of each of the image's four planes is this task's
-                                // alone.
-                                unsafe { *out.get(m * plane + p) = weight * v };
-                            }
-                        }
-                    }
+                    let rows = block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h);
+                    // SAFETY: rows `rows` of the image's four planes are this task's alone.
+                    unsafe { density_grad_rows_simd(p0, p1, a, g, rows, [h, w], [lambda, mu], out) };
                 });
         });
     // The adjoint of the forward differences: `J₀₀`, `J₁₀` difference along rows (none on

@@ -50,6 +50,17 @@ pub trait Real:
     fn exp(self) -> Self;
     /// The natural logarithm.
     fn ln(self) -> Self;
+    /// [`ln`](Self::ln) of eight values: libm's, one at a time, unless the type has a
+    /// vectorisable one ([`crate::model::elementary`] for float32).
+    #[inline(always)]
+    fn ln8(x: [Self; 8]) -> [Self; 8] {
+        x.map(Self::ln)
+    }
+    /// [`exp`](Self::exp) of eight values, as [`ln8`](Self::ln8).
+    #[inline(always)]
+    fn exp8(x: [Self; 8]) -> [Self; 8] {
+        x.map(Self::exp)
+    }
     /// Writes the 8 × 8 block at `src` (rows `src_stride` values apart) transposed to `dst`
     /// (rows `dst_stride` apart): `dst[j·dst_stride + i] = src[i·src_stride + j]`.
     ///
@@ -101,6 +112,14 @@ impl Real for f32 {
     }
     fn ln(self) -> Self {
         f32::ln(self)
+    }
+    #[inline(always)]
+    fn ln8(x: [Self; 8]) -> [Self; 8] {
+        crate::model::elementary::ln8(x)
+    }
+    #[inline(always)]
+    fn exp8(x: [Self; 8]) -> [Self; 8] {
+        crate::model::elementary::exp8(x)
     }
     #[inline(always)]
     unsafe fn transpose8(src: *const Self, src_stride: usize, dst: *mut Self, dst_stride: usize) {
