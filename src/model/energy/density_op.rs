@@ -190,28 +190,13 @@ fn density_grad8<T: Real>(j: [[T; LANES]; 4], lambda: T, mu: T) -> [[T; LANES]; 
     ]
 }
 
-/// Visits the pixels of rows `rows` as runs of eight interior pixels (`visit(i, j, true)`,
-/// `j` the run's first column) and single pixels (`visit(i, j, false)`): the last row and
-/// the pixels from `w − 8` on go one at a time, where the boundary rule of [`jacobian_at`]
-/// applies.
+/// How many runs of eight interior pixels start row `i` (`[h, w]` the image's size), at
+/// columns `0, 8, …`: none on the last row, and the pixels from the last run's end on go
+/// one at a time, where the boundary rule of [`jacobian_at`] applies. (Loops rather than a
+/// visitor closure: the closure was not inlined into the AVX2 copy of its caller.)
 #[inline(always)]
-fn for_each_run(
-    rows: std::ops::Range<usize>,
-    [h, w]: [usize; 2],
-    mut visit: impl FnMut(usize, usize, bool),
-) {
-    for i in rows {
-        let mut j = 0;
-        if i + 1 < h {
-            while j + LANES < w {
-                visit(i, j, true);
-                j += LANES;
-            }
-        }
-        for j in j..w {
-            visit(i, j, false);
-        }
-    }
+fn runs(i: usize, [h, w]: [usize; 2]) -> usize {
+    if i + 1 < h { (w - 1) / LANES } else { 0 }
 }
 
 /// [`host_density`]'s rows `rows` of one image: `p0`, `p1`, `a` that image's planes, `out`
@@ -227,18 +212,21 @@ fn density_rows<T: Real>(
     out: &mut [T],
 ) {
     let first = rows.start * w;
-    for_each_run(rows, [h, w], |i, j, run| {
-        let at = i * w + j;
-        if run {
+    for i in rows {
+        let interior = runs(i, [h, w]) * LANES;
+        for j in (0..interior).step_by(LANES) {
+            let at = i * w + j;
             let v = density8(jacobians8(p0, p1, at, w), half_lambda, mu);
             let out = &mut out[at - first..at - first + LANES];
             for ((o, v), a) in out.iter_mut().zip(v).zip(&a[at..at + LANES]) {
                 *o = *a * v;
             }
-        } else {
+        }
+        for j in interior..w {
+            let at = i * w + j;
             out[at - first] = a[at] * density_at(jacobian_at(p0, p1, i, j, h, w), half_lambda, mu);
         }
-    });
+    }
 }
 
 /// The first pass of [`host_density_grad`] on rows `rows` of one image: `g a ∂W/∂J` into the
@@ -260,9 +248,10 @@ unsafe fn density_grad_rows<T: Real>(
     entries: Shared<T>,
 ) {
     let plane = h * w;
-    for_each_run(rows, [h, w], |i, j, run| {
-        let at = i * w + j;
-        if run {
+    for i in rows {
+        let interior = runs(i, [h, w]) * LANES;
+        for j in (0..interior).step_by(LANES) {
+            let at = i * w + j;
             let d = density_grad8(jacobians8(p0, p1, at, w), lambda, mu);
             for (m, d) in d.into_iter().enumerate() {
                 for (l, v) in d.into_iter().enumerate() {
@@ -270,14 +259,16 @@ unsafe fn density_grad_rows<T: Real>(
                     unsafe { *entries.get(m * plane + at + l) = g[at + l] * a[at + l] * v };
                 }
             }
-        } else {
+        }
+        for j in interior..w {
+            let at = i * w + j;
             let d = density_grad_at(jacobian_at(p0, p1, i, j, h, w), lambda, mu);
             for (m, v) in d.into_iter().enumerate() {
                 // SAFETY: the caller's promise.
                 unsafe { *entries.get(m * plane + at) = g[at] * a[at] * v };
             }
         }
-    });
+    }
 }
 
 simd_dispatch!(fn density_rows_simd<T: Real>(
