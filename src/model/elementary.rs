@@ -61,10 +61,25 @@ const EXP_SERIES: [f64; 14] = [
     1.0 / 6_227_020_800.0,
 ];
 
-/// `Σ coefficients[k] · xᵏ` by Horner's rule.
+/// `Σ coefficients[k] · xᵏ` by Estrin's scheme: adjacent coefficients paired as
+/// `c₂ᵢ + c₂ᵢ₊₁ x`, those paired with `x²`, then `x⁴`, …: a tree of depth `log₂ N` where
+/// Horner's rule is a chain of `N` dependent multiply-adds (the density's kernel waited on
+/// those chains). [`avx2`] pairs the same terms in the same order.
 #[inline(always)]
-fn horner<const N: usize>(x: f64, coefficients: &[f64; N]) -> f64 {
-    coefficients.iter().rev().fold(0.0, |sum, &c| sum * x + c)
+fn estrin<const N: usize>(x: f64, coefficients: &[f64; N]) -> f64 {
+    let mut terms = *coefficients;
+    let (mut len, mut power) = (N, x);
+    while len > 1 {
+        for i in 0..len / 2 {
+            terms[i] = terms[2 * i] + terms[2 * i + 1] * power;
+        }
+        if len % 2 == 1 {
+            terms[len / 2] = terms[len - 1];
+        }
+        len = len.div_ceil(2);
+        power = power * power;
+    }
+    terms[0]
 }
 
 /// The integer `n` held by `t = v + ROUNDER` (`|n| < 2⁵¹`), as a bit-pattern difference:
@@ -88,7 +103,7 @@ fn ln_lane(x: f64) -> f64 {
     // The exponent as a float64 by the same bit trick (|e| < 2¹¹).
     let e = f64::from_bits((ROUNDER.to_bits() as i64).wrapping_add(e) as u64) - ROUNDER;
     let s = (m - 1.0) / (m + 1.0);
-    let ln_m = 2.0 * s * horner(s * s, &ATANH_SERIES);
+    let ln_m = 2.0 * s * estrin(s * s, &ATANH_SERIES);
     let value = e * LN2_HI + (e * LN2_LO + ln_m);
     if x > 0.0 && x < f64::INFINITY {
         value
@@ -112,7 +127,7 @@ fn exp_lane(y: f64) -> f64 {
     let n = t - ROUNDER;
     let r = (y - n * LN2_HI) - n * LN2_LO;
     let scale = f64::from_bits(((rounded_integer(t) + 1023) as u64) << 52);
-    horner(r, &EXP_SERIES) * scale
+    estrin(r, &EXP_SERIES) * scale
 }
 
 /// `ln` of eight float32 values (see the module's accuracy).
@@ -169,12 +184,23 @@ mod avx2 {
         out
     }
 
+    /// [`super::estrin`], four lanes at a time.
     #[inline]
     #[target_feature(enable = "avx2")]
-    fn horner<const N: usize>(x: __m256d, coefficients: &[f64; N]) -> __m256d {
-        coefficients.iter().rev().fold(_mm256_setzero_pd(), |sum, &c| {
-            _mm256_add_pd(_mm256_mul_pd(sum, x), _mm256_set1_pd(c))
-        })
+    fn estrin<const N: usize>(x: __m256d, coefficients: &[f64; N]) -> __m256d {
+        let mut terms: [__m256d; N] = std::array::from_fn(|k| _mm256_set1_pd(coefficients[k]));
+        let (mut len, mut power) = (N, x);
+        while len > 1 {
+            for i in 0..len / 2 {
+                terms[i] = _mm256_add_pd(terms[2 * i], _mm256_mul_pd(terms[2 * i + 1], power));
+            }
+            if len % 2 == 1 {
+                terms[len / 2] = terms[len - 1];
+            }
+            len = len.div_ceil(2);
+            power = _mm256_mul_pd(power, power);
+        }
+        terms[0]
     }
 
     #[inline]
@@ -202,7 +228,7 @@ mod avx2 {
         let s = _mm256_div_pd(_mm256_sub_pd(m, one), _mm256_add_pd(m, one));
         let ln_m = _mm256_mul_pd(
             _mm256_mul_pd(_mm256_set1_pd(2.0), s),
-            horner(_mm256_mul_pd(s, s), &ATANH_SERIES),
+            estrin(_mm256_mul_pd(s, s), &ATANH_SERIES),
         );
         let value = _mm256_add_pd(
             _mm256_mul_pd(e, _mm256_set1_pd(LN2_HI)),
@@ -243,7 +269,7 @@ mod avx2 {
             integer,
             _mm256_set1_epi64x(1023),
         )));
-        _mm256_mul_pd(horner(r, &EXP_SERIES), scale)
+        _mm256_mul_pd(estrin(r, &EXP_SERIES), scale)
     }
 
     /// [`super::ln8`] on a CPU with AVX2.
