@@ -67,6 +67,9 @@ pub struct Capabilities {
     /// Whether the regulariser's weighted density `a · W(J(φ))` and its gradient are the fused
     /// host kernels of [`crate::model::energy::density_op`]: flex. The others compose them.
     pub fused_density: bool,
+    /// Whether the anisotropy's edge weight after its two separable operators is the fused
+    /// host kernel of [`crate::model::energy::anisotropy_op`]: flex. The others compose it.
+    pub fused_anisotropy: bool,
     /// Whether the fused spline kernels keep many-channel coefficients channels-last and
     /// read them so in place ([`crate::model::warp::op`]): flex. Joining channel blocks of
     /// coefficients then keeps that layout ([`crate::model::warp::BSpline::join`]).
@@ -83,6 +86,7 @@ impl Capabilities {
                 gather: backend.warp_gather(),
                 fused_linearisation: backend == Backend::Flex,
                 fused_density: backend == Backend::Flex,
+                fused_anisotropy: backend == Backend::Flex,
                 channels_last_coefficients: backend == Backend::Flex,
             },
             None => Self {
@@ -90,6 +94,7 @@ impl Capabilities {
                 gather: Gather::Elements,
                 fused_linearisation: false,
                 fused_density: false,
+                fused_anisotropy: false,
                 channels_last_coefficients: false,
             },
         }

@@ -258,7 +258,10 @@ mod avx2 {
         let y = _mm256_min_pd(_mm256_set1_pd(EXP_CLAMP), y);
         let y = _mm256_max_pd(_mm256_set1_pd(-EXP_CLAMP), y);
         let rounder = _mm256_set1_pd(ROUNDER);
-        let t = _mm256_add_pd(_mm256_mul_pd(y, _mm256_set1_pd(std::f64::consts::LOG2_E)), rounder);
+        let t = _mm256_add_pd(
+            _mm256_mul_pd(y, _mm256_set1_pd(std::f64::consts::LOG2_E)),
+            rounder,
+        );
         let n = _mm256_sub_pd(t, rounder);
         let r = _mm256_sub_pd(
             _mm256_sub_pd(y, _mm256_mul_pd(n, _mm256_set1_pd(LN2_HI))),
@@ -368,7 +371,10 @@ mod tests {
             let x: [f32; 8] = chunk.try_into().unwrap();
             for ((v, l), e) in x.into_iter().zip(ln8(x)).zip(exp8(x)) {
                 let (sl, se) = (ln_lane(f64::from(v)) as f32, exp_lane(f64::from(v)) as f32);
-                assert!(same(l, sl) && same(e, se), "{v:e}: ln {l:e} / {sl:e}, exp {e:e} / {se:e}");
+                assert!(
+                    same(l, sl) && same(e, se),
+                    "{v:e}: ln {l:e} / {sl:e}, exp {e:e} / {se:e}"
+                );
             }
         }
     }
@@ -380,7 +386,10 @@ mod tests {
             for ((v, l), e) in x.into_iter().zip(ln8(x)).zip(exp8(x)) {
                 for (got, want) in [(l, v.ln()), (e, v.exp())] {
                     let ulps = (got.to_bits() as i64 - want.to_bits() as i64).abs();
-                    assert!(same(got, want) || ulps <= 1, "{v:e}: {got:e} against libm {want:e}");
+                    assert!(
+                        same(got, want) || ulps <= 1,
+                        "{v:e}: {got:e} against libm {want:e}"
+                    );
                 }
             }
         }

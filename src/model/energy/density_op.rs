@@ -179,7 +179,8 @@ fn density_grad8<T: Real>(j: [[T; LANES]; 4], lambda: T, mu: T) -> [[T; LANES]; 
     let (zero, one, two) = (T::default(), T::from_f64(1.0), T::from_f64(2.0));
     let [det, log_det, growth] = volume_terms8(&j);
     let [j00, j01, j10, j11] = j;
-    let factor: [T; LANES] = std::array::from_fn(|l| growth[l] * log_det[l] * lambda * (one / det[l]));
+    let factor: [T; LANES] =
+        std::array::from_fn(|l| growth[l] * log_det[l] * lambda * (one / det[l]));
     let shear: [T; LANES] = std::array::from_fn(|l| (j01[l] + j10[l]) * mu);
     let admissible = |l: usize, v: T| if det[l] > zero { v } else { zero };
     [
@@ -282,15 +283,27 @@ simd_dispatch!(fn density_rows_simd<T: Real>(
 ///
 /// As [`density_grad_rows`].
 unsafe fn density_grad_rows_simd<T: Real>(
-    p0: &[T], p1: &[T], a: &[T], g: &[T], rows: std::ops::Range<usize>, hw: [usize; 2],
-    coefficients: [T; 2], entries: Shared<T>,
+    p0: &[T],
+    p1: &[T],
+    a: &[T],
+    g: &[T],
+    rows: std::ops::Range<usize>,
+    hw: [usize; 2],
+    coefficients: [T; 2],
+    entries: Shared<T>,
 ) {
     #[cfg(target_arch = "x86_64")]
     {
         #[target_feature(enable = "avx2")]
         unsafe fn wide<T: Real>(
-            p0: &[T], p1: &[T], a: &[T], g: &[T], rows: std::ops::Range<usize>,
-            hw: [usize; 2], coefficients: [T; 2], entries: Shared<T>,
+            p0: &[T],
+            p1: &[T],
+            a: &[T],
+            g: &[T],
+            rows: std::ops::Range<usize>,
+            hw: [usize; 2],
+            coefficients: [T; 2],
+            entries: Shared<T>,
         ) {
             // SAFETY: the caller's promise.
             unsafe { density_grad_rows(p0, p1, a, g, rows, hw, coefficients, entries) }
@@ -407,13 +420,18 @@ pub fn host_density_grad<T: Real>(
         .for_each(|(b, entries)| {
             let (p0, p1) = planes(phi, b, plane);
             let out = Shared(entries.as_mut_ptr());
-            let (a, g) = (&a[b * plane..(b + 1) * plane], &g[b * plane..(b + 1) * plane]);
+            let (a, g) = (
+                &a[b * plane..(b + 1) * plane],
+                &g[b * plane..(b + 1) * plane],
+            );
             (0..h.div_ceil(ROWS_PER_TASK))
                 .into_par_iter()
                 .for_each(|block| {
                     let rows = block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h);
                     // SAFETY: rows `rows` of the image's four planes are this task's alone.
-                    unsafe { density_grad_rows_simd(p0, p1, a, g, rows, [h, w], [lambda, mu], out) };
+                    unsafe {
+                        density_grad_rows_simd(p0, p1, a, g, rows, [h, w], [lambda, mu], out)
+                    };
                 });
         });
     // The adjoint of the forward differences: `J₀₀`, `J₁₀` difference along rows (none on

@@ -1,8 +1,9 @@
 //! The terms of the path energy, grouped by what they look at: the deformation
-//! ([`density`], [`density_op`], [`regularizer`]), the image ([`anisotropy`]), an image pair ([`data`]), and
+//! ([`density`], [`density_op`], [`regularizer`]), the image ([`anisotropy`], [`anisotropy_op`]), an image pair ([`data`]), and
 //! the whole path ([`path`]).
 
 pub mod anisotropy;
+pub mod anisotropy_op;
 pub mod data;
 pub mod density;
 pub mod density_op;
