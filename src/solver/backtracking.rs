@@ -94,6 +94,24 @@ impl Backtracking {
         new.is_finite() && new <= old + inner + 0.5 * l * norm2 + slack * old.abs()
     }
 
+    /// The same test for an objective that is quadratic along the step, from its exact
+    /// remainder `F(x_new) − F(x̃) − ⟨∇F(x̃), x_new − x̃⟩` (the step's curvature term):
+    /// `remainder ≤ L/2 ‖x_new − x̃‖² + slack·|F(x̃)|`. Equal to [`accepts`](Self::accepts) in
+    /// exact arithmetic; in floating point it never subtracts `F(x̃)` from `F(x_new)`, whose
+    /// rounding (float32 summands) can exceed the decrease a small step predicts and then
+    /// decides the test. A non-finite remainder or `F(x_new)` never passes.
+    pub fn accepts_remainder(
+        &self,
+        new: f64,
+        old: f64,
+        remainder: f64,
+        norm2: f64,
+        l: f64,
+        slack: f64,
+    ) -> bool {
+        new.is_finite() && remainder.is_finite() && remainder <= 0.5 * l * norm2 + slack * old.abs()
+    }
+
     /// Runs one search from the stored estimate `stored`: calls `trial(L)` for
     /// `L = shrink·stored, 2·shrink·stored, …` until it accepts or `max_trials` have run.
     ///

@@ -482,7 +482,8 @@ impl Ipalm {
             .mul_scalar(steps / delta);
             let grads = q.backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let mut parts = norms_each(&residuals(x_tilde.clone(), warped.detach()));
+            let warped_tilde = warped.detach();
+            let mut parts = norms_each(&residuals(x_tilde.clone(), warped_tilde.clone()));
             parts.push(grid.decision_sum_each(grad.clone().square()));
             let v = read_scalars(grid, parts);
             let q_tilde: Vec<f64> = (0..n).map(|i| (v[i] + v[n + i]) * scale).collect();
@@ -506,7 +507,12 @@ impl Ipalm {
                 let inverse = per_item(l.iter().map(|l| 1.0 / l).collect());
                 let candidates = x_tilde.clone() - grad.clone() * inverse;
                 let warped = warp(candidates.clone());
-                let v = read_scalars(grid, norms_each(&residuals(candidates.clone(), warped)));
+                // ‖T[d, φ_k]‖² = ‖T[x_new, φ_k] − T[x̃, φ_k]‖² of each item: the exact remainder
+                // of the quadratic Q (see the sequential feature step).
+                let moved = grid.decision_sum_each((warped.clone() - warped_tilde.clone()).square());
+                let mut parts = norms_each(&residuals(candidates.clone(), warped));
+                parts.push(moved);
+                let v = read_scalars(grid, parts);
                 for i in 0..n {
                     let Some(l) = trial[i] else {
                         continue;
@@ -514,8 +520,11 @@ impl Ipalm {
                     norms[i] = (v[i], v[n + i]);
                     let q_new = (v[i] + v[n + i]) * scale;
                     let (g2, q0) = (norm2[i], q_tilde[i]);
-                    // x_new − x̃ = −∇Q/L: ⟨∇Q, x_new − x̃⟩ = −‖∇Q‖²/L, ‖x_new − x̃‖² = ‖∇Q‖²/L².
-                    let outcome = if bt.accepts(q_new, q0, -g2 / l, g2 / (l * l), l, slack) {
+                    // x_new − x̃ = −∇Q/L: ‖x_new − x̃‖² = ‖∇Q‖²/L²; the test on the exact
+                    // remainder scale·(‖T[d, φ_k]‖² + ‖d‖²), as the sequential feature step.
+                    let d2 = g2 / (l * l);
+                    let remainder = scale * (v[2 * n + i] + d2);
+                    let outcome = if bt.accepts_remainder(q_new, q0, remainder, d2, l, slack) {
                         Trial::Accepted(item(&candidates, i))
                     } else {
                         Trial::Rejected
