@@ -650,8 +650,48 @@ fn carried_and_fresh_sweeps(backend: Backend, channels: usize) {
     );
 }
 
+/// A feature step near its minimiser must not freeze (SPEC §6's decrease test, evaluated
+/// on `Q`'s exact quadratic remainder): with the deformations fixed, feature-only sweeps
+/// drive `∇Q` to the rounding level of the float32 warps. Tested on `Q(x_new) − Q(x̃)`, the
+/// rounding of the two values then exceeded the decrease `‖∇Q‖²/(2L)` the step predicts,
+/// every trial failed and `L_f` doubled each sweep until that decrease fell below float64's
+/// resolution of `Q` (about 2³⁵ times the curvature; seen on every deep 256² run's coarse
+/// levels). The remainder `scale·(‖T[d]‖² + ‖d‖²)` has no such cancellation: the accepted
+/// `L_f` stays near the curvature, on both schedules.
+fn converged_features_do_not_freeze(backend: Backend) {
+    use deepmorph::solver::ipalm::Schedule;
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(24, 24, &device, Precision::F32.dtype()).unwrap();
+    let layout = FeatureLayout::rgb();
+    let (k, delta) = (3, EnergyParams::rgb().delta);
+    let (a, b) = (blob(&grid, 9.0, 9.0), blob(&grid, 11.0, 13.0));
+    for schedule in [Schedule::Sequential, Schedule::Batched] {
+        let mut state = LevelState::initial(&grid, &layout, a.clone(), b.clone(), k, delta).unwrap();
+        for (i, phi) in state.phi.iter_mut().enumerate() {
+            *phi = bumped(&grid, 0.6 + 0.3 * i as f64);
+        }
+        state.phi_prev = state.phi.clone();
+        let start = state.l_f[0][0];
+        let config = IpalmConfig {
+            schedule,
+            ..IpalmConfig::default()
+        };
+        let ipalm = Ipalm::new(&grid, EnergyParams::rgb(), layout.clone(), config).unwrap();
+        let mut largest: f64 = 0.0;
+        for _ in 0..300 {
+            ipalm.sweep(&mut state, SweepKind::FeaturesOnly).unwrap();
+            largest = state.l_f.iter().flatten().fold(largest, |m, &l| m.max(l));
+        }
+        assert!(
+            largest < 100.0 * start,
+            "{backend:?}, {schedule:?}: L_f reached {largest:e} from {start:e}"
+        );
+    }
+}
+
 on_each_cpu_backend!(
     a_carried_sweep_equals_a_fresh_one,
+    converged_features_do_not_freeze,
     the_energy_after_a_sweep_reuses_the_sweeps_residuals,
     decision_sums_are_float64_sums_of_the_float32_values,
     a_level_stops_when_the_energy_stalls,
