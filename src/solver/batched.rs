@@ -509,7 +509,8 @@ impl Ipalm {
                 let warped = warp(candidates.clone());
                 // ‖T[d, φ_k]‖² = ‖T[x_new, φ_k] − T[x̃, φ_k]‖² of each item: the exact remainder
                 // of the quadratic Q (see the sequential feature step).
-                let moved = grid.decision_sum_each((warped.clone() - warped_tilde.clone()).square());
+                let moved =
+                    grid.decision_sum_each((warped.clone() - warped_tilde.clone()).square());
                 let mut parts = norms_each(&residuals(candidates.clone(), warped));
                 parts.push(moved);
                 let v = read_scalars(grid, parts);

@@ -666,7 +666,8 @@ fn converged_features_do_not_freeze(backend: Backend) {
     let (k, delta) = (3, EnergyParams::rgb().delta);
     let (a, b) = (blob(&grid, 9.0, 9.0), blob(&grid, 11.0, 13.0));
     for schedule in [Schedule::Sequential, Schedule::Batched] {
-        let mut state = LevelState::initial(&grid, &layout, a.clone(), b.clone(), k, delta).unwrap();
+        let mut state =
+            LevelState::initial(&grid, &layout, a.clone(), b.clone(), k, delta).unwrap();
         for (i, phi) in state.phi.iter_mut().enumerate() {
             *phi = bumped(&grid, 0.6 + 0.3 * i as f64);
         }

@@ -230,15 +230,12 @@ fn density_rows<T: Real>(
     }
 }
 
-/// The first pass of [`host_density_grad`] on rows `rows` of one image: `g a ∂W/∂J` into the
-/// image's four entry planes at `entries`; `p0`, `p1`, `a`, `g` that image's planes.
-///
-/// # Safety
-///
-/// `entries` holds four `h × w` planes, and rows `rows` of them are the caller's alone.
+/// The first pass of [`host_density_grad`] on rows `rows` of one image: `g a ∂W/∂J` into
+/// `entries`, rows `rows` of the image's four entry planes; `p0`, `p1`, `a`, `g` that
+/// image's planes.
 #[inline(always)]
 #[allow(clippy::too_many_arguments)]
-unsafe fn density_grad_rows<T: Real>(
+fn density_grad_rows<T: Real>(
     p0: &[T],
     p1: &[T],
     a: &[T],
@@ -246,27 +243,26 @@ unsafe fn density_grad_rows<T: Real>(
     rows: std::ops::Range<usize>,
     [h, w]: [usize; 2],
     [lambda, mu]: [T; 2],
-    entries: Shared<T>,
+    mut entries: [&mut [T]; 4],
 ) {
-    let plane = h * w;
+    let first = rows.start * w;
     for i in rows {
         let interior = runs(i, [h, w]) * LANES;
         for j in (0..interior).step_by(LANES) {
             let at = i * w + j;
             let d = density_grad8(jacobians8(p0, p1, at, w), lambda, mu);
-            for (m, d) in d.into_iter().enumerate() {
-                for (l, v) in d.into_iter().enumerate() {
-                    // SAFETY: the caller's promise.
-                    unsafe { *entries.get(m * plane + at + l) = g[at + l] * a[at + l] * v };
+            for (d, plane) in d.into_iter().zip(entries.iter_mut()) {
+                let out = &mut plane[at - first..at - first + LANES];
+                for (l, (o, v)) in out.iter_mut().zip(d).enumerate() {
+                    *o = g[at + l] * a[at + l] * v;
                 }
             }
         }
         for j in interior..w {
             let at = i * w + j;
             let d = density_grad_at(jacobian_at(p0, p1, i, j, h, w), lambda, mu);
-            for (m, v) in d.into_iter().enumerate() {
-                // SAFETY: the caller's promise.
-                unsafe { *entries.get(m * plane + at) = g[at] * a[at] * v };
+            for (v, plane) in d.into_iter().zip(entries.iter_mut()) {
+                plane[at - first] = g[at] * a[at] * v;
             }
         }
     }
@@ -277,45 +273,10 @@ simd_dispatch!(fn density_rows_simd<T: Real>(
     coefficients: [T; 2], out: &mut [T]
 ) => density_rows);
 
-/// [`density_grad_rows`] for the CPU's widest lanes.
-///
-/// # Safety
-///
-/// As [`density_grad_rows`].
-unsafe fn density_grad_rows_simd<T: Real>(
-    p0: &[T],
-    p1: &[T],
-    a: &[T],
-    g: &[T],
-    rows: std::ops::Range<usize>,
-    hw: [usize; 2],
-    coefficients: [T; 2],
-    entries: Shared<T>,
-) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2")]
-        unsafe fn wide<T: Real>(
-            p0: &[T],
-            p1: &[T],
-            a: &[T],
-            g: &[T],
-            rows: std::ops::Range<usize>,
-            hw: [usize; 2],
-            coefficients: [T; 2],
-            entries: Shared<T>,
-        ) {
-            // SAFETY: the caller's promise.
-            unsafe { density_grad_rows(p0, p1, a, g, rows, hw, coefficients, entries) }
-        }
-        if has_avx2() {
-            // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's promise.
-            return unsafe { wide(p0, p1, a, g, rows, hw, coefficients, entries) };
-        }
-    }
-    // SAFETY: the caller's promise.
-    unsafe { density_grad_rows(p0, p1, a, g, rows, hw, coefficients, entries) }
-}
+simd_dispatch!(fn density_grad_rows_simd<T: Real>(
+    p0: &[T], p1: &[T], a: &[T], g: &[T], rows: std::ops::Range<usize>, hw: [usize; 2],
+    coefficients: [T; 2], entries: [&mut [T]; 4]
+) => density_grad_rows);
 
 /// The two planes `(φ₀, φ₁)` of deformation `b` in `phi` (`[N, 2, H, W]`, `plane = H·W`).
 #[inline]
@@ -428,10 +389,16 @@ pub fn host_density_grad<T: Real>(
                 .into_par_iter()
                 .for_each(|block| {
                     let rows = block * ROWS_PER_TASK..((block + 1) * ROWS_PER_TASK).min(h);
-                    // SAFETY: rows `rows` of the image's four planes are this task's alone.
-                    unsafe {
-                        density_grad_rows_simd(p0, p1, a, g, rows, [h, w], [lambda, mu], out)
-                    };
+                    let entries = std::array::from_fn(|m| {
+                        // SAFETY: rows `rows` of the image's four planes are this task's alone.
+                        unsafe {
+                            std::slice::from_raw_parts_mut(
+                                out.get(m * plane + rows.start * w),
+                                rows.len() * w,
+                            )
+                        }
+                    });
+                    density_grad_rows_simd(p0, p1, a, g, rows, [h, w], [lambda, mu], entries);
                 });
         });
     // The adjoint of the forward differences: `J₀₀`, `J₁₀` difference along rows (none on
