@@ -3,7 +3,8 @@
 //! `exp((log det J)²)` at every pixel, SPEC §2).
 //!
 //! libm's `logf` and `expf` are calls the compiler cannot vectorise: in a 256² RGB sweep
-//! they and the scalar loop around them were a sixth of the samples. Here both are branch-free
+//! they and the scalar loop around them were a fifth of the samples (the density 14 %, its
+//! gradient 5 %). Here both are branch-free
 //! float64 arithmetic on bit patterns (vector selects instead of branches), accurate to a few
 //! float64 ulps, so rounding the result to float32 gives the correctly rounded `ln x` and
 //! `eˣ` except where the exact value lies within about 1e-15 (relative) of a midpoint
