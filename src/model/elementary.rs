@@ -5,8 +5,8 @@
 //! libm's `logf` and `expf` are calls the compiler cannot vectorise: in a 256² RGB sweep
 //! they and the scalar loop around them were a fifth of the samples (the density 14 %, its
 //! gradient 5 %). Here both are branch-free float64 arithmetic on bit patterns (vector
-//! selects instead of branches), accurate to a few float64 ulps, so rounding the result to float32 gives the correctly rounded `ln x` and
-//! `eˣ` except where the exact value lies within about 1e-15 (relative) of a midpoint
+//! selects instead of branches), accurate to a few float64 ulps, so rounding the result to
+//! float32 gives the correctly rounded `ln x` and `eˣ` except where the exact value lies within about 1e-15 (relative) of a midpoint
 //! between two float32 values: the same values as `(x as f64).ln() as f32`, and as libm's
 //! float32 functions wherever those round correctly (glibc's claim: to 0.502 ulp).
 //!
