@@ -6,9 +6,9 @@
 //! they and the scalar loop around them were a fifth of the samples (the density 14 %, its
 //! gradient 5 %). Here both are branch-free float64 arithmetic on bit patterns (vector
 //! selects instead of branches), accurate to a few float64 ulps, so rounding the result to
-//! float32 gives the correctly rounded `ln x` and `eˣ` except where the exact value lies within about 1e-15 (relative) of a midpoint
-//! between two float32 values: the same values as `(x as f64).ln() as f32`, and as libm's
-//! float32 functions wherever those round correctly (glibc's claim: to 0.502 ulp).
+//! float32 gives the correctly rounded `ln x` and `eˣ` except where the exact value lies
+//! within about 1e-15 (relative) of a midpoint between two float32 values: the same values
+//! as `(x as f64).ln() as f32`, and as libm's float32 functions wherever those round correctly (glibc's claim: to 0.502 ulp).
 //!
 //! Special values follow IEEE 754 and libm: `ln 0 = −∞`, `ln` of a negative number or NaN
 //! is NaN, `ln ∞ = ∞`; `exp` overflows to `∞` (for float32) and underflows to 0, and a NaN
