@@ -8,7 +8,8 @@
 //! selects instead of branches), accurate to a few float64 ulps, so rounding the result to
 //! float32 gives the correctly rounded `ln x` and `eˣ` except where the exact value lies
 //! within about 1e-15 (relative) of a midpoint between two float32 values: the same values
-//! as `(x as f64).ln() as f32`, and as libm's float32 functions wherever those round correctly (glibc's claim: to 0.502 ulp).
+//! as `(x as f64).ln() as f32`, and as libm's float32 functions wherever those round
+//! correctly (glibc's claim: to 0.502 ulp).
 //!
 //! Special values follow IEEE 754 and libm: `ln 0 = −∞`, `ln` of a negative number or NaN
 //! is NaN, `ln ∞ = ∞`; `exp` overflows to `∞` (for float32) and underflows to 0, and a NaN
