@@ -24,6 +24,8 @@ use std::ops::{Add, AddAssign, Div, Mul, Sub};
 
 use rayon::prelude::*;
 
+mod quad;
+
 /// The element types the kernels run in.
 pub trait Real:
     Copy
@@ -60,6 +62,19 @@ pub trait Real:
     #[inline(always)]
     fn exp8(x: [Self; 8]) -> [Self; 8] {
         x.map(Self::exp)
+    }
+    /// A contiguous 4 × 4 stencil of a quad table, every channel at once ([`quad`]):
+    /// `Σ_b wc[b] · (Σ_a wr[a] · table[(rows[a] + j0 + b)·4 + ch])`. In registers for
+    /// float32 where the CPU has AVX; the same bits either way.
+    #[inline(always)]
+    fn quad_stencil(
+        table: &[Self],
+        rows: &[usize; 4],
+        j0: usize,
+        wr: &[Self; 4],
+        wc: &[Self; 4],
+    ) -> [Self; 4] {
+        quad::stencil(table, rows, j0, wr, wc)
     }
     /// Writes the 8 × 8 block at `src` (rows `src_stride` values apart) transposed to `dst`
     /// (rows `dst_stride` apart): `dst[j·dst_stride + i] = src[i·src_stride + j]`.
@@ -120,6 +135,21 @@ impl Real for f32 {
     #[inline(always)]
     fn exp8(x: [Self; 8]) -> [Self; 8] {
         crate::model::elementary::exp8(x)
+    }
+    #[inline(always)]
+    fn quad_stencil(
+        table: &[Self],
+        rows: &[usize; 4],
+        j0: usize,
+        wr: &[Self; 4],
+        wc: &[Self; 4],
+    ) -> [Self; 4] {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2 (and so AVX).
+            return unsafe { quad::stencil_avx(table, rows, j0, wr, wc) };
+        }
+        quad::stencil(table, rows, j0, wr, wc)
     }
     #[inline(always)]
     unsafe fn transpose8(src: *const Self, src_stride: usize, dst: *mut Self, dst_stride: usize) {
@@ -1403,6 +1433,9 @@ pub fn sample_uninit<T: Real>(coeffs: &[T], phi: &[T], out: &mut [MaybeUninit<T>
     if d.c >= CHANNELS_LAST_FROM {
         return sample_channels_last(coeffs, Layout::Planar, phi, out, d);
     }
+    if quad::reads_quads(d.c) {
+        return quad::sample(coeffs, phi, out, d);
+    }
     let points = d.points();
     let tasks = points.div_ceil(PIXELS_PER_TASK);
     let out = Shared(out.as_mut_ptr().cast::<T>());
@@ -1453,6 +1486,9 @@ pub fn sample_position_grad<T: Real>(coeffs: &[T], phi: &[T], grad: &[T], out: &
     assert_eq!(out.len(), phi.len(), "position gradient");
     if d.c >= CHANNELS_LAST_FROM {
         return position_grad_channels_last(coeffs, Layout::Planar, phi, grad, out, d);
+    }
+    if quad::reads_quads(d.c) {
+        return quad::position_grad(coeffs, phi, grad, out, d);
     }
     let points = d.points();
     let tasks = points.div_ceil(PIXELS_PER_TASK);
