@@ -24,7 +24,7 @@ use std::ops::{Add, AddAssign, Div, Mul, Sub};
 
 use rayon::prelude::*;
 
-mod quad;
+pub mod quad;
 
 /// The element types the kernels run in.
 pub trait Real:
@@ -63,18 +63,20 @@ pub trait Real:
     fn exp8(x: [Self; 8]) -> [Self; 8] {
         x.map(Self::exp)
     }
-    /// A contiguous 4 × 4 stencil of a quad table, every channel at once ([`quad`]):
-    /// `Σ_b wc[b] · (Σ_a wr[a] · table[(rows[a] + j0 + b)·4 + ch])`. In registers for
-    /// float32 where the CPU has AVX; the same bits either way.
+    /// The stencils of the first `n` points of a block over a quad table ([`quad`]), where a
+    /// type has a faster kernel for them: written to `block[l]` for the lanes of the mask it
+    /// returns (none by default; float32 on AVX2 does those whose columns are contiguous).
     #[inline(always)]
-    fn quad_stencil(
+    fn quad_block(
         table: &[Self],
-        rows: &[usize; 4],
-        j0: usize,
-        wr: &[Self; 4],
-        wc: &[Self; 4],
-    ) -> [Self; 4] {
-        quad::stencil(table, rows, j0, wr, wc)
+        w: usize,
+        rows: quad::BlockAxis<'_, Self>,
+        cols: quad::BlockAxis<'_, Self>,
+        n: usize,
+        block: &mut [[Self; 4]; LANES],
+    ) -> u32 {
+        let _ = (table, w, rows, cols, n, block);
+        0
     }
     /// Writes the 8 × 8 block at `src` (rows `src_stride` values apart) transposed to `dst`
     /// (rows `dst_stride` apart): `dst[j·dst_stride + i] = src[i·src_stride + j]`.
@@ -137,19 +139,21 @@ impl Real for f32 {
         crate::model::elementary::exp8(x)
     }
     #[inline(always)]
-    fn quad_stencil(
+    fn quad_block(
         table: &[Self],
-        rows: &[usize; 4],
-        j0: usize,
-        wr: &[Self; 4],
-        wc: &[Self; 4],
-    ) -> [Self; 4] {
+        w: usize,
+        rows: quad::BlockAxis<'_, Self>,
+        cols: quad::BlockAxis<'_, Self>,
+        n: usize,
+        block: &mut [[Self; 4]; LANES],
+    ) -> u32 {
         #[cfg(target_arch = "x86_64")]
         if has_avx2() {
-            // SAFETY: the CPU has AVX2 (and so AVX).
-            return unsafe { quad::stencil_avx(table, rows, j0, wr, wc) };
+            // SAFETY: the CPU has AVX2.
+            return unsafe { quad::block_avx(table, w, rows, cols, n, block) };
         }
-        quad::stencil(table, rows, j0, wr, wc)
+        let _ = (table, w, rows, cols, n, block);
+        0
     }
     #[inline(always)]
     unsafe fn transpose8(src: *const Self, src_stride: usize, dst: *mut Self, dst_stride: usize) {
@@ -1486,9 +1490,6 @@ pub fn sample_position_grad<T: Real>(coeffs: &[T], phi: &[T], grad: &[T], out: &
     assert_eq!(out.len(), phi.len(), "position gradient");
     if d.c >= CHANNELS_LAST_FROM {
         return position_grad_channels_last(coeffs, Layout::Planar, phi, grad, out, d);
-    }
-    if quad::reads_quads(d.c) {
-        return quad::position_grad(coeffs, phi, grad, out, d);
     }
     let points = d.points();
     let tasks = points.div_ceil(PIXELS_PER_TASK);
