@@ -44,7 +44,10 @@ pub trait Real:
     fn from_f64(v: f64) -> Self;
     /// To float64 (exact).
     fn to_f64(self) -> f64;
-    /// Rounded towards zero to an integer (saturating; NaN gives 0).
+    /// Rounded towards zero to an integer where that is in `[0, 2³⁰]`, else 0 (NaN
+    /// included): the floor of a clamped grid coordinate. Not `as i32`: its saturation and
+    /// NaN rule kept the points' setup scalar (one conversion and two compares per lane),
+    /// where a select and an unchecked conversion vectorise.
     fn truncate(self) -> i32;
     /// From an integer (exact for the grid's indices).
     fn from_i32(i: i32) -> Self;
@@ -91,6 +94,9 @@ pub trait Real:
     }
 }
 
+/// The largest value [`Real::truncate`] converts (`2³⁰`, exact in both precisions).
+const GRID_INDEX_MAX: f64 = (1u32 << 30) as f64;
+
 /// [`Real::transpose8`] one value at a time.
 ///
 /// # Safety
@@ -118,8 +124,15 @@ impl Real for f32 {
     fn to_f64(self) -> f64 {
         f64::from(self)
     }
+    #[inline(always)]
     fn truncate(self) -> i32 {
-        self as i32
+        let q = if (0.0..=GRID_INDEX_MAX as f32).contains(&self) {
+            self
+        } else {
+            0.0
+        };
+        // SAFETY: `q` is finite and in `[0, 2³⁰]`, so its truncation is an `i32`.
+        unsafe { q.to_int_unchecked() }
     }
     fn from_i32(i: i32) -> Self {
         i as f32
@@ -221,8 +234,15 @@ impl Real for f64 {
     fn to_f64(self) -> f64 {
         self
     }
+    #[inline(always)]
     fn truncate(self) -> i32 {
-        self as i32
+        let q = if (0.0..=GRID_INDEX_MAX).contains(&self) {
+            self
+        } else {
+            0.0
+        };
+        // SAFETY: `q` is finite and in `[0, 2³⁰]`, so its truncation is an `i32`.
+        unsafe { q.to_int_unchecked() }
     }
     fn from_i32(i: i32) -> Self {
         f64::from(i)
