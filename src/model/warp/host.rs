@@ -81,6 +81,22 @@ pub trait Real:
         let _ = (table, w, rows, cols, n, block);
         0
     }
+    /// Adds the values of the lanes `lanes` of a block into a quad table (the adjoint of
+    /// [`quad_block`](Self::quad_block)), in lane order, as far as the type has a faster
+    /// kernel for them; returns the first lane not done (by default `lanes.start`: none;
+    /// float32 on AVX2 stops at the first lane whose columns the mirror folded).
+    #[inline(always)]
+    fn quad_scatter(
+        table: &mut [Self],
+        w: usize,
+        rows: quad::BlockAxis<'_, Self>,
+        cols: quad::BlockAxis<'_, Self>,
+        lanes: std::ops::Range<usize>,
+        values: &[[Self; 4]; LANES],
+    ) -> usize {
+        let _ = (table, w, rows, cols, values);
+        lanes.start
+    }
     /// Writes the 8 × 8 block at `src` (rows `src_stride` values apart) transposed to `dst`
     /// (rows `dst_stride` apart): `dst[j·dst_stride + i] = src[i·src_stride + j]`.
     ///
@@ -167,6 +183,23 @@ impl Real for f32 {
         }
         let _ = (table, w, rows, cols, n, block);
         0
+    }
+    #[inline(always)]
+    fn quad_scatter(
+        table: &mut [Self],
+        w: usize,
+        rows: quad::BlockAxis<'_, Self>,
+        cols: quad::BlockAxis<'_, Self>,
+        lanes: std::ops::Range<usize>,
+        values: &[[Self; 4]; LANES],
+    ) -> usize {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2.
+            return unsafe { quad::scatter_avx(table, w, rows, cols, lanes, values) };
+        }
+        let _ = (table, w, rows, cols, values);
+        lanes.start
     }
     #[inline(always)]
     unsafe fn transpose8(src: *const Self, src_stride: usize, dst: *mut Self, dst_stride: usize) {
@@ -1682,6 +1715,9 @@ pub fn sample_adjoint_uninit<T: Real>(grad: &[T], phi: &[T], out: &mut [MaybeUni
             scatter_simd(grad, phi, target, d, b, channels, 0..points);
         });
         return;
+    }
+    if quad::reads_quads(d.c) {
+        return quad::adjoint(grad, phi, out, d, parts);
     }
     let per_part = points.div_ceil(parts);
     let scatter = |target: &mut [T], pl: usize, part: usize| {

@@ -20,7 +20,7 @@ use rayon::prelude::*;
 
 use super::{
     Axis, AxisLanes, Dims, LANES, PIXELS_PER_TASK, Real, Shared, contiguous, has_avx2,
-    simd_dispatch,
+    simd_dispatch, stencil as stencil_offsets,
 };
 
 /// Channels per pixel of a quad table.
@@ -260,10 +260,256 @@ simd_dispatch!(fn sample_at_simd<T: Real>(
     table: &[T], phi: &[T], out: Shared<T>, d: Dims, b: usize, points: Range<usize>
 ) => sample_at);
 
+/// `B(φ)ᵀ g` for 3 or 4 channels whose points [`super::sample_adjoint`] splits into `parts`
+/// per image (few planes: the sequential schedule's frames): each part scatters every
+/// channel of its points into a private quad table, and the parts are summed in order into
+/// the planar `out`. The planar scatter ran one channel per task, so each point's setup was
+/// computed once per channel; here once. Same sums in the same order as the planar path
+/// (its parts split the points the same way), so the same bits.
+pub(super) fn adjoint<T: Real>(
+    grad: &[T],
+    phi: &[T],
+    out: &mut [MaybeUninit<T>],
+    d: Dims,
+    parts: usize,
+) {
+    let (points, plane) = (d.points(), d.h * d.w);
+    let per_part = points.div_ceil(parts);
+    let mut tables = vec![T::default(); d.n * parts * plane * QUAD];
+    tables
+        .par_chunks_mut(plane * QUAD)
+        .enumerate()
+        .for_each(|(task, table)| {
+            let (b, part) = (task / parts, task % parts);
+            let range = part * per_part..((part + 1) * per_part).min(points);
+            scatter_simd(grad, phi, table, d, b, range);
+        });
+    let tasks = plane.div_ceil(PIXELS_PER_TASK);
+    let out = Shared(out.as_mut_ptr().cast::<T>());
+    (0..d.n * tasks).into_par_iter().for_each(|task| {
+        let (b, chunk) = (task / tasks, task % tasks);
+        let pixels = chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(plane);
+        let image = &tables[b * parts * plane * QUAD..(b + 1) * parts * plane * QUAD];
+        for ch in 0..d.c {
+            for i in pixels.clone() {
+                let mut sum = image[i * QUAD + ch];
+                for part in 1..parts {
+                    sum += image[(part * plane + i) * QUAD + ch];
+                }
+                // SAFETY: pixel i of image b is this task's alone, in every channel's plane.
+                unsafe { out.write((b * d.c + ch) * plane + i, sum) };
+            }
+        }
+    });
+}
+
+/// Adds `B(φ)ᵀ g` of the points `points` of image `b` into the quad `table`, a block of
+/// [`LANES`] points at a time: [`Real::quad_scatter`] as far as it goes, the generic sums for
+/// a lane it stops at, in point order (the order of the adds into shared coefficients).
+#[inline(always)]
+fn scatter<T: Real>(
+    grad: &[T],
+    phi: &[T],
+    table: &mut [T],
+    d: Dims,
+    b: usize,
+    points: Range<usize>,
+) {
+    let count = d.points();
+    let (p0, p1) = (
+        &phi[b * 2 * count..b * 2 * count + count],
+        &phi[b * 2 * count + count..(b + 1) * 2 * count],
+    );
+    let mut values = [[T::default(); QUAD]; LANES];
+    for first in points.clone().step_by(LANES) {
+        let n = LANES.min(points.end - first);
+        let load = |axis: &[T]| {
+            let mut v = [T::default(); LANES];
+            v[..n].copy_from_slice(&axis[first..first + n]);
+            v
+        };
+        let (rows, cols) = (
+            AxisLanes::new(&load(p0), d.h),
+            AxisLanes::new(&load(p1), d.w),
+        );
+        for ch in 0..d.c {
+            let g = &grad[(b * d.c + ch) * count + first..(b * d.c + ch) * count + first + n];
+            for (value, &g) in values.iter_mut().zip(g) {
+                value[ch] = g;
+            }
+        }
+        let mut l = 0;
+        while l < n {
+            l = T::quad_scatter(
+                table,
+                d.w,
+                (&rows.index, &rows.weight),
+                (&cols.index, &cols.weight),
+                l..n,
+                &values,
+            );
+            if l < n {
+                scatter_lane(table, d.w, &rows.lane(l), &cols.lane(l), &values[l]);
+                l += 1;
+            }
+        }
+    }
+}
+
+simd_dispatch!(fn scatter_simd<T: Real>(
+    grad: &[T], phi: &[T], table: &mut [T], d: Dims, b: usize, points: Range<usize>
+) => scatter);
+
+/// Adds one point's `values` into the quad `table` by the generic sums: the planar scatter's
+/// per channel (`(wr·v)·wc` down four contiguous columns, else `(wr·wc)·v` through the
+/// mirror's indices).
+#[inline(always)]
+fn scatter_lane<T: Real>(
+    table: &mut [T],
+    w: usize,
+    rows: &Axis<T>,
+    cols: &Axis<T>,
+    values: &[T; QUAD],
+) {
+    let (wr, wc) = (&rows.weight, &cols.weight);
+    if let Some((ro, j0)) = contiguous(rows, cols, w) {
+        for a in 0..4 {
+            let at = (ro[a] + j0) * QUAD;
+            let run: &mut [T; 16] = (&mut table[at..at + 16]).try_into().expect("four quads");
+            for ch in 0..QUAD {
+                let s = wr[a] * values[ch];
+                for k in 0..4 {
+                    run[k * QUAD + ch] += s * wc[k];
+                }
+            }
+        }
+        return;
+    }
+    let (offset, weight) = stencil_offsets(rows, cols, w);
+    for k in 0..16 {
+        for ch in 0..QUAD {
+            table[offset[k] * QUAD + ch] += weight[k] * values[ch];
+        }
+    }
+}
+
+/// Adds the `values` of the lanes `lanes` of a block into the quad `table` in AVX registers,
+/// in lane order, until a lane whose columns the mirror folded; returns the first lane not
+/// done. Per value the planar scatter's `(wr·v)·wc`, so the same bits.
+///
+/// # Safety
+///
+/// The CPU has AVX2.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+#[target_feature(enable = "avx2")]
+pub(super) unsafe fn scatter_avx(
+    table: &mut [f32],
+    w: usize,
+    rows: BlockAxis<'_, f32>,
+    cols: BlockAxis<'_, f32>,
+    lanes: Range<usize>,
+    values: &[[f32; QUAD]; LANES],
+) -> usize {
+    use std::arch::x86_64::*;
+    for l in lanes.start..lanes.end.min(LANES) {
+        let j0 = cols.0[0][l] as usize;
+        if cols.0[3][l] as usize != j0 + 3 {
+            return l;
+        }
+        // SAFETY: `values[l]` holds four values.
+        let v = unsafe { _mm_loadu_ps(values[l].as_ptr()) };
+        let columns =
+            |k: usize| _mm256_setr_m128(_mm_set1_ps(cols.1[k][l]), _mm_set1_ps(cols.1[k + 1][l]));
+        let (left, right) = (columns(0), columns(2));
+        for a in 0..4 {
+            let at = (rows.0[a][l] as usize * w + j0) * QUAD;
+            let run: &mut [f32; 16] = (&mut table[at..at + 16]).try_into().expect("four quads");
+            let s = _mm_mul_ps(_mm_set1_ps(rows.1[a][l]), v);
+            let s = _mm256_setr_m128(s, s);
+            let ptr = run.as_mut_ptr();
+            // SAFETY: `run` holds 16 values: two loads and stores of 8.
+            unsafe {
+                let x = _mm256_add_ps(_mm256_loadu_ps(ptr), _mm256_mul_ps(s, left));
+                let y = _mm256_add_ps(_mm256_loadu_ps(ptr.add(8)), _mm256_mul_ps(s, right));
+                _mm256_storeu_ps(ptr, x);
+                _mm256_storeu_ps(ptr.add(8), y);
+            }
+        }
+    }
+    lanes.end
+}
+
 #[cfg(test)]
 mod tests {
     use super::super::sample_planar;
     use super::*;
+
+    /// The quad adjoint is the planar scatter's, bit for bit: per plane, each part of the
+    /// points scattered into zeros, the parts summed in order (float32 through the AVX2
+    /// kernel, float64 through the generic sums), with points on the mirror's folds and
+    /// parts that end inside a block.
+    #[test]
+    fn the_quad_adjoint_is_the_planar_scatter_bit_for_bit() {
+        adjoint_check::<f32>(|x| u64::from(x.to_bits()));
+        adjoint_check::<f64>(f64::to_bits);
+    }
+
+    fn adjoint_check<T: Real + std::fmt::Debug>(bits: fn(T) -> u64) {
+        let (d, phi) = dims_and_points::<T>(3);
+        let grad = ramp::<T>(d.n * d.c * d.points(), 1.1);
+        let plane = d.h * d.w;
+        for parts in [1, 2, 3] {
+            let mut quads = vec![MaybeUninit::new(T::from_f64(f64::NAN)); d.n * d.c * plane];
+            adjoint(&grad, &phi, &mut quads, d, parts);
+            // SAFETY: the adjoint writes every value.
+            let quads: Vec<T> = quads.iter().map(|v| unsafe { v.assume_init() }).collect();
+            let per_part = d.points().div_ceil(parts);
+            for b in 0..d.n {
+                for ch in 0..d.c {
+                    let mut want = vec![T::default(); plane];
+                    for part in 0..parts {
+                        let mut partial = vec![T::default(); plane];
+                        let range = part * per_part..((part + 1) * per_part).min(d.points());
+                        super::super::scatter(&grad, &phi, &mut partial, d, b, ch..ch + 1, range);
+                        for (w, p) in want.iter_mut().zip(&partial) {
+                            *w = if part == 0 { *p } else { *w + *p };
+                        }
+                    }
+                    let at = (b * d.c + ch) * plane;
+                    let got: Vec<u64> = quads[at..at + plane].iter().map(|&x| bits(x)).collect();
+                    let want: Vec<u64> = want.iter().map(|&x| bits(x)).collect();
+                    assert_eq!(got, want, "{parts} parts, image {b}, channel {ch}");
+                }
+            }
+        }
+    }
+
+    fn ramp<T: Real>(n: usize, seed: f64) -> Vec<T> {
+        (0..n)
+            .map(|i| T::from_f64((i as f64 * 0.37 + seed).sin() + 0.1 * i as f64 % 3.0))
+            .collect()
+    }
+
+    /// Two images of `c` channels, 23 × 29 coefficients sampled at 41 × 37 points inside,
+    /// outside and on the edges of the clamp range.
+    fn dims_and_points<T: Real>(c: usize) -> (Dims, Vec<T>) {
+        let d = Dims {
+            n: 2,
+            c,
+            h: 23,
+            w: 29,
+            ho: 41,
+            wo: 37,
+        };
+        let phi = (0..d.n * 2 * d.points())
+            .map(|i| {
+                let hi = if (i / d.points()) % 2 == 0 { d.h } else { d.w } as f64;
+                T::from_f64((i as f64 * 0.618).rem_euclid(hi + 4.0) - 2.0)
+            })
+            .collect();
+        (d, phi)
+    }
 
     /// Three and four channels go through quad tables: the same sums in the same order as
     /// the planar kernel, so the same bits, in float32 (the AVX2 kernel) where reordered
@@ -277,27 +523,9 @@ mod tests {
     }
 
     fn check<T: Real + std::fmt::Debug>(bits: fn(T) -> u64) {
-        let ramp = |n: usize, seed: f64| -> Vec<T> {
-            (0..n)
-                .map(|i| T::from_f64((i as f64 * 0.37 + seed).sin() + 0.1 * i as f64 % 3.0))
-                .collect()
-        };
         for c in [3, 4] {
-            let d = Dims {
-                n: 2,
-                c,
-                h: 23,
-                w: 29,
-                ho: 41,
-                wo: 37,
-            };
-            let coeffs = ramp(d.n * c * d.h * d.w, 0.3);
-            let phi: Vec<T> = (0..d.n * 2 * d.points())
-                .map(|i| {
-                    let hi = if (i / d.points()) % 2 == 0 { d.h } else { d.w } as f64;
-                    T::from_f64((i as f64 * 0.618).rem_euclid(hi + 4.0) - 2.0)
-                })
-                .collect();
+            let (d, phi) = dims_and_points::<T>(c);
+            let coeffs = ramp::<T>(d.n * c * d.h * d.w, 0.3);
             let len = d.n * c * d.points();
             let nan = T::from_f64(f64::NAN);
             let (mut quads, mut planar) = (vec![nan; len], vec![nan; len]);
