@@ -500,6 +500,7 @@ fn substitute<T: Real>(
 /// # Safety
 ///
 /// `plane` points to a `rows × width` plane whose columns `cols` no other thread touches.
+#[inline(always)]
 unsafe fn solve_columns<T: Real>(
     plane: Shared<T>,
     width: usize,
@@ -521,6 +522,39 @@ unsafe fn solve_columns<T: Real>(
 
 /// The interpolating prefilter `c = P f` of every `height × width` plane of `data`, in place
 /// (SPEC §1, exact); with `transpose`, its adjoint `Pᵀ g`. `P` is separable: the same 1-D
+/// [`solve_columns`], compiled for AVX2 where the CPU has it (eight lanes of the column
+/// block per operation instead of four).
+///
+/// # Safety
+///
+/// As [`solve_columns`].
+unsafe fn solve_columns_simd<T: Real>(
+    plane: Shared<T>,
+    width: usize,
+    rows: usize,
+    cols: std::ops::Range<usize>,
+    factors: &(Vec<T>, Vec<T>, Vec<T>),
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        unsafe fn wide<T: Real>(
+            plane: Shared<T>,
+            width: usize,
+            rows: usize,
+            cols: std::ops::Range<usize>,
+            factors: &(Vec<T>, Vec<T>, Vec<T>),
+        ) {
+            unsafe { solve_columns(plane, width, rows, cols, factors) }
+        }
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's promise.
+            return unsafe { wide(plane, width, rows, cols, factors) };
+        }
+    }
+    unsafe { solve_columns(plane, width, rows, cols, factors) }
+}
+
 /// solve along each axis, in either order.
 pub fn prefilter<T: Real>(data: &mut [T], height: usize, width: usize, transpose: bool) {
     prefilter_from(None, data, height, width, transpose);
@@ -623,7 +657,9 @@ fn solve_all_columns<T: Real>(
             let cols = b * block..((b + 1) * block).min(width);
             // SAFETY: task (p, b) owns columns `cols` of plane `p`; tasks differ in one or the
             // other.
-            unsafe { solve_columns(Shared(base.get(p * plane)), width, height, cols, along_h) };
+            unsafe {
+                solve_columns_simd(Shared(base.get(p * plane)), width, height, cols, along_h)
+            };
         });
 }
 
@@ -701,13 +737,19 @@ fn gather_row<'a, T: Real>(
     let width = values.len() / c;
     assert_eq!(width * c, values.len(), "a row of {c} channels");
     let plane = image.len() / c;
-    for ch in 0..c {
-        let from = ch * plane + i * width;
-        for (j, &v) in image[from..from + width].iter().enumerate() {
-            values[j * c + ch].write(v);
-        }
-    }
-    // SAFETY: the loops wrote all `width · c` values.
+    assert!(i < plane / width.max(1), "row {i} of planes of {plane}");
+    // SAFETY: `values` holds the `width · c` values written; row i of every plane is in
+    // `image` from its offset.
+    unsafe {
+        transpose_pixels(
+            &image[i * width..],
+            c,
+            plane,
+            Shared(values.as_mut_ptr().cast::<T>()),
+            0..width,
+        )
+    };
+    // SAFETY: the transpose wrote all `width · c` values.
     unsafe { assume_init(values) }
 }
 
