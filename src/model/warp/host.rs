@@ -16,7 +16,8 @@
 //! `[N, 2, H', W']`, warped maps `[N, C, H', W']`. Many channels ([`reads_channels_last`])
 //! are read channels-last; [`prefilter_channels_last`] writes coefficients so, and
 //! [`sample_from_table`] / [`position_grad_from_table`] read such a table in place, a block
-//! of its channels too ([`Layout`]), where the planar entry points transpose per call.
+//! of its channels too ([`Layout`]), where the planar entry points transpose per call. Three
+//! or four channels are evaluated and scattered through per-call quad tables ([`quad`]).
 
 use std::borrow::Cow;
 use std::mem::MaybeUninit;

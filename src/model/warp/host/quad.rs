@@ -1,5 +1,5 @@
-//! The spline's evaluation for a few channels (RGB's 3, or 4) through a quad table: each
-//! pixel's channels side by side, padded with zeros to four.
+//! The spline's evaluation and its adjoint for a few channels (RGB's 3, or 4) through quad
+//! tables: each pixel's channels side by side, padded with zeros to four.
 //!
 //! Planar, a point's 4 × 4 stencil is, per channel, four loads of four contiguous columns, a
 //! sum down the rows and a sum across them: three times for RGB, each ending in a horizontal
@@ -7,8 +7,10 @@
 //! of the stencil is 16 contiguous values, all channels of its four columns: two AVX registers
 //! per row, the sums down the rows for every channel at once, and one fold across columns
 //! at the end ([`Real::quad_block`]). Building the table is one pass over the coefficients
-//! per call. The position gradient stays planar: an RGB sweep takes its deformation
-//! gradients from the image's slopes, not from this op.
+//! per call. The adjoint adds every channel of a point at once into private quad tables
+//! ([`Real::quad_scatter`]), where the planar scatter set each point up once per channel.
+//! The position gradient stays planar: an RGB sweep takes its deformation gradients from
+//! the image's slopes, not from this op.
 //!
 //! Every sum is the planar kernels' in the same order (no fused multiply-adds), so the
 //! values are the same bits (tested).
