@@ -325,6 +325,27 @@ macro_rules! simd_dispatch {
             $body($($arg),*)
         }
     };
+    // The same for an `unsafe fn` body: the copy has the body's safety contract.
+    ($(#[$doc:meta])* unsafe fn $name:ident<$t:ident: Real>($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
+        $(#[$doc])*
+        unsafe fn $name<$t: Real>($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                unsafe fn wide<$t: Real>($($arg: $ty),*) {
+                    // SAFETY: the caller's promise, passed on.
+                    unsafe { $body($($arg),*) }
+                }
+                if has_avx2() {
+                    // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's
+                    // promise.
+                    return unsafe { wide($($arg),*) };
+                }
+            }
+            // SAFETY: the caller's promise, passed on.
+            unsafe { $body($($arg),*) }
+        }
+    };
 }
 pub(crate) use simd_dispatch;
 
@@ -501,7 +522,6 @@ fn substitute<T: Real>(
 /// # Safety
 ///
 /// `plane` points to a `rows × width` plane whose columns `cols` no other thread touches.
-#[inline(always)]
 unsafe fn solve_columns<T: Real>(
     plane: Shared<T>,
     width: usize,
@@ -523,39 +543,6 @@ unsafe fn solve_columns<T: Real>(
 
 /// The interpolating prefilter `c = P f` of every `height × width` plane of `data`, in place
 /// (SPEC §1, exact); with `transpose`, its adjoint `Pᵀ g`. `P` is separable: the same 1-D
-/// [`solve_columns`], compiled for AVX2 where the CPU has it (eight lanes of the column
-/// block per operation instead of four).
-///
-/// # Safety
-///
-/// As [`solve_columns`].
-unsafe fn solve_columns_simd<T: Real>(
-    plane: Shared<T>,
-    width: usize,
-    rows: usize,
-    cols: std::ops::Range<usize>,
-    factors: &(Vec<T>, Vec<T>, Vec<T>),
-) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2")]
-        unsafe fn wide<T: Real>(
-            plane: Shared<T>,
-            width: usize,
-            rows: usize,
-            cols: std::ops::Range<usize>,
-            factors: &(Vec<T>, Vec<T>, Vec<T>),
-        ) {
-            unsafe { solve_columns(plane, width, rows, cols, factors) }
-        }
-        if has_avx2() {
-            // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's promise.
-            return unsafe { wide(plane, width, rows, cols, factors) };
-        }
-    }
-    unsafe { solve_columns(plane, width, rows, cols, factors) }
-}
-
 /// solve along each axis, in either order.
 pub fn prefilter<T: Real>(data: &mut [T], height: usize, width: usize, transpose: bool) {
     prefilter_from(None, data, height, width, transpose);
@@ -658,9 +645,7 @@ fn solve_all_columns<T: Real>(
             let cols = b * block..((b + 1) * block).min(width);
             // SAFETY: task (p, b) owns columns `cols` of plane `p`; tasks differ in one or the
             // other.
-            unsafe {
-                solve_columns_simd(Shared(base.get(p * plane)), width, height, cols, along_h)
-            };
+            unsafe { solve_columns(Shared(base.get(p * plane)), width, height, cols, along_h) };
         });
 }
 
@@ -1214,37 +1199,16 @@ unsafe fn transpose_pixels<T: Real>(
     }
 }
 
-/// [`transpose_pixels`], compiled for AVX2 where the CPU has it.
-///
-/// # Safety
-///
-/// As [`transpose_pixels`].
-unsafe fn transpose_pixels_simd<T: Real>(
-    planar: &[T],
-    c: usize,
-    plane: usize,
-    out: Shared<T>,
-    pixels: std::ops::Range<usize>,
-) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2")]
-        unsafe fn wide<T: Real>(
-            planar: &[T],
-            c: usize,
-            plane: usize,
-            out: Shared<T>,
-            pixels: std::ops::Range<usize>,
-        ) {
-            unsafe { transpose_pixels(planar, c, plane, out, pixels) }
-        }
-        if has_avx2() {
-            // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's promise.
-            return unsafe { wide(planar, c, plane, out, pixels) };
-        }
-    }
-    unsafe { transpose_pixels(planar, c, plane, out, pixels) }
-}
+simd_dispatch!(
+    /// [`transpose_pixels`], compiled for AVX2 where the CPU has it.
+    ///
+    /// # Safety
+    ///
+    /// As [`transpose_pixels`].
+    unsafe fn transpose_pixels_simd<T: Real>(
+        planar: &[T], c: usize, plane: usize, out: Shared<T>, pixels: std::ops::Range<usize>
+    ) => transpose_pixels
+);
 
 /// `Σ_i a[i] · b[i]` in eight interleaved partial sums (vectorisable, and short dependency
 /// chains).
@@ -1364,25 +1328,15 @@ unsafe fn tile_to_planes<T: Real>(tile: &[T], c: usize, out: Shared<T>, plane: u
     }
 }
 
-/// [`tile_to_planes`], compiled for AVX2 where the CPU has it.
-///
-/// # Safety
-///
-/// As [`tile_to_planes`].
-unsafe fn tile_to_planes_simd<T: Real>(tile: &[T], c: usize, out: Shared<T>, plane: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2")]
-        unsafe fn wide<T: Real>(tile: &[T], c: usize, out: Shared<T>, plane: usize) {
-            unsafe { tile_to_planes(tile, c, out, plane) }
-        }
-        if has_avx2() {
-            // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's promise.
-            return unsafe { wide(tile, c, out, plane) };
-        }
-    }
-    unsafe { tile_to_planes(tile, c, out, plane) }
-}
+simd_dispatch!(
+    /// [`tile_to_planes`], compiled for AVX2 where the CPU has it.
+    ///
+    /// # Safety
+    ///
+    /// As [`tile_to_planes`].
+    unsafe fn tile_to_planes_simd<T: Real>(tile: &[T], c: usize, out: Shared<T>, plane: usize)
+        => tile_to_planes
+);
 
 /// The points `points` of image `b` evaluated from the channels-last `table` into `tile`,
 /// channels-last (`C` values per point).

@@ -65,7 +65,7 @@ fn table<T: Real>(planar: &[T], d: &Dims) -> Vec<T> {
 /// stencil whose four columns `j0 …` are contiguous. Down the rows in order, then across
 /// the columns as two independent pairs: the planar kernel's `sum4(wc, down_rows(…, wr))`.
 #[inline(always)]
-pub(super) fn stencil<T: Real>(
+fn stencil<T: Real>(
     table: &[T],
     rows: &[usize; 4],
     j0: usize,
