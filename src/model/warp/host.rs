@@ -905,6 +905,18 @@ impl<T: Real> AxisLanes<T> {
         lanes
     }
 
+    /// The row and column axes of the `n ≤ LANES` points from `first` of an image whose
+    /// deformation planes are `(p0, p1)` ([`deformation_planes`]), on an `h × w` grid.
+    #[inline(always)]
+    fn block((p0, p1): (&[T], &[T]), first: usize, n: usize, h: usize, w: usize) -> (Self, Self) {
+        let load = |axis: &[T]| {
+            let mut v = [T::default(); LANES];
+            v[..n].copy_from_slice(&axis[first..first + n]);
+            v
+        };
+        (Self::new(&load(p0), h), Self::new(&load(p1), w))
+    }
+
     /// The axis of point `l`.
     #[inline(always)]
     fn lane(&self, l: usize) -> Axis<T> {
@@ -922,6 +934,13 @@ impl<T: Real> AxisLanes<T> {
             inside: self.inside[l],
         }
     }
+}
+
+/// Image `b`'s deformation `φ_b` as its two planes (row and column coordinates).
+#[inline(always)]
+fn deformation_planes<'a, T>(phi: &'a [T], d: &Dims, b: usize) -> (&'a [T], &'a [T]) {
+    let plane = d.points();
+    phi[b * 2 * plane..(b + 1) * 2 * plane].split_at(plane)
 }
 
 /// `1/6`, a product where a division would stall the point's setup.
@@ -946,11 +965,11 @@ struct Points<'a, T> {
 impl<'a, T: Real> Points<'a, T> {
     #[inline(always)]
     fn new(phi: &'a [T], d: &Dims, b: usize, points: std::ops::Range<usize>) -> Self {
-        let plane = d.points();
         let zero = [T::default(); LANES];
+        let (p0, p1) = deformation_planes(phi, d, b);
         Self {
-            p0: &phi[b * 2 * plane..b * 2 * plane + plane],
-            p1: &phi[b * 2 * plane + plane..(b + 1) * 2 * plane],
+            p0,
+            p1,
             h: d.h,
             w: d.w,
             next: points.start,
@@ -974,14 +993,8 @@ impl<T: Real> Iterator for Points<'_, T> {
         }
         if (p - self.first) % LANES == 0 {
             let count = LANES.min(self.end - p);
-            let load = |axis: &[T]| {
-                let mut v = [T::default(); LANES];
-                v[..count].copy_from_slice(&axis[p..p + count]);
-                v
-            };
             self.first = p;
-            self.rows = AxisLanes::new(&load(self.p0), self.h);
-            self.cols = AxisLanes::new(&load(self.p1), self.w);
+            (self.rows, self.cols) = AxisLanes::block((self.p0, self.p1), p, count, self.h, self.w);
         }
         self.next = p + 1;
         let l = p - self.first;

@@ -21,8 +21,8 @@ use std::ops::Range;
 use rayon::prelude::*;
 
 use super::{
-    Axis, AxisLanes, Dims, LANES, PIXELS_PER_TASK, Real, Shared, contiguous, has_avx2,
-    simd_dispatch, stencil as stencil_offsets,
+    Axis, AxisLanes, Dims, LANES, PIXELS_PER_TASK, Real, Shared, contiguous, deformation_planes,
+    has_avx2, simd_dispatch, stencil as stencil_offsets,
 };
 
 /// Channels per pixel of a quad table.
@@ -203,22 +203,11 @@ fn sample_at<T: Real>(
 ) {
     let (plane, count) = (d.h * d.w, d.points());
     let table = &table[b * plane * QUAD..(b + 1) * plane * QUAD];
-    let (p0, p1) = (
-        &phi[b * 2 * count..b * 2 * count + count],
-        &phi[b * 2 * count + count..(b + 1) * 2 * count],
-    );
+    let planes = deformation_planes(phi, &d, b);
     let mut block = [[T::default(); QUAD]; LANES];
     for first in points.clone().step_by(LANES) {
         let n = LANES.min(points.end - first);
-        let load = |axis: &[T]| {
-            let mut v = [T::default(); LANES];
-            v[..n].copy_from_slice(&axis[first..first + n]);
-            v
-        };
-        let (rows, cols) = (
-            AxisLanes::new(&load(p0), d.h),
-            AxisLanes::new(&load(p1), d.w),
-        );
+        let (rows, cols) = AxisLanes::block(planes, first, n, d.h, d.w);
         let done = T::quad_block(
             table,
             d.w,
@@ -318,22 +307,11 @@ fn scatter<T: Real>(
     points: Range<usize>,
 ) {
     let count = d.points();
-    let (p0, p1) = (
-        &phi[b * 2 * count..b * 2 * count + count],
-        &phi[b * 2 * count + count..(b + 1) * 2 * count],
-    );
+    let planes = deformation_planes(phi, &d, b);
     let mut values = [[T::default(); QUAD]; LANES];
     for first in points.clone().step_by(LANES) {
         let n = LANES.min(points.end - first);
-        let load = |axis: &[T]| {
-            let mut v = [T::default(); LANES];
-            v[..n].copy_from_slice(&axis[first..first + n]);
-            v
-        };
-        let (rows, cols) = (
-            AxisLanes::new(&load(p0), d.h),
-            AxisLanes::new(&load(p1), d.w),
-        );
+        let (rows, cols) = AxisLanes::block(planes, first, n, d.h, d.w);
         for ch in 0..d.c {
             let g = &grad[(b * d.c + ch) * count + first..(b * d.c + ch) * count + first + n];
             for (value, &g) in values.iter_mut().zip(g) {
