@@ -5,6 +5,9 @@
 //! 1. All deformations `φ_1..φ_K`: given the frames they are independent. Each `k` keeps its
 //!    own `L_φ,k`, backtracking search, safeguard and inertia restart; the searches run in
 //!    lockstep (one batched trial and one read-back per round, until every `k` is decided).
+//!    A round, a restart and a safeguard doubling evaluate only the steps still undecided:
+//!    recomputing every `k` for the one still searching made a deep batched sweep several
+//!    times the work of a sequential one.
 //! 2. All odd frames, then 3. all even frames: given the deformations and the frames of the
 //!    other parity, `f_k` only meets `f_{k±1}`, so the frames of one parity are independent.
 //!
@@ -22,7 +25,7 @@ use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{
     DeformationStep, FeatureStep, Ipalm, LevelState, SweepKind, SweepReport, read_scalars,
 };
-use crate::solver::prox::LinearisedData;
+use crate::solver::prox::{LinearisedData, pick};
 
 /// Item `i` of a stacked tensor, `[1, …]`.
 fn item(t: &Tensor<4>, i: usize) -> Tensor<4> {
@@ -32,6 +35,11 @@ fn item(t: &Tensor<4>, i: usize) -> Tensor<4> {
 /// A stack built item by item from `pick(i)`.
 fn stack(n: usize, pick: impl Fn(usize) -> Tensor<4>) -> Tensor<4> {
     Tensor::cat((0..n).map(pick).collect(), 0)
+}
+
+/// The indices `i < n` where `keep(i)`.
+fn indices(n: usize, keep: impl Fn(usize) -> bool) -> Vec<usize> {
+    (0..n).filter(|&i| keep(i)).collect()
 }
 
 /// All deformation steps of a sweep: the stacked form of `DeformationProblem`.
@@ -46,15 +54,37 @@ struct Deformations<'a> {
     steps: f64,
 }
 
-/// The stacked linearisation around the points `φ̃_1..φ̃_K`.
+/// The stacked linearisation of the steps `steps` (indices into `0..K`) around their points
+/// `φ̃_k`; item `j` belongs to step `steps[j]`.
 struct Linearised {
+    steps: Vec<usize>,
     point: Tensor<4>,
+    /// `S_k(φ̃_k)` of each item.
     smooth: Vec<f64>,
     gradient: Tensor<4>,
     data: LinearisedData,
 }
 
 impl Linearised {
+    /// The items `items` of this linearisation.
+    fn select(&self, items: &[usize]) -> Self {
+        Self {
+            steps: items.iter().map(|&j| self.steps[j]).collect(),
+            point: pick(&self.point, items),
+            smooth: items.iter().map(|&j| self.smooth[j]).collect(),
+            gradient: pick(&self.gradient, items),
+            data: self.data.select(items),
+        }
+    }
+
+    /// The item of step `k`.
+    fn item_of(&self, k: usize) -> usize {
+        self.steps
+            .iter()
+            .position(|&s| s == k)
+            .expect("the step is linearised here")
+    }
+
     fn candidates(&self, l: &[f64]) -> Tensor<4> {
         let inverse: Tensor<4> = self.data_grid_tensor(l);
         self.data
@@ -75,42 +105,46 @@ impl Linearised {
 }
 
 impl Deformations<'_> {
-    /// `S_k(φ_k)` summed for decisions, `[K]`.
-    fn smooth_decision(&self, phi: Tensor<4>) -> Tensor<1> {
+    /// `S_k(φ_k)` of the steps `idx`, summed for decisions, `[idx.len()]`.
+    fn smooth_decision(&self, phi: Tensor<4>, idx: &[usize]) -> Tensor<1> {
         let p = self.ipalm.energy.params();
         let grid = &self.ipalm.grid;
-        grid.decision_sum_each(weighted_density(phi, self.a.clone(), p.lambda, p.mu))
+        grid.decision_sum_each(weighted_density(phi, pick(&self.a, idx), p.lambda, p.mu))
             .mul_scalar(self.steps / grid.pixels() as f64)
     }
 
-    /// The safeguard's local energies `e_k(φ_k)`, summed for decisions.
-    fn local_energies(&self, phi: Tensor<4>) -> Vec<f64> {
+    /// The safeguard's local energies `e_k(φ_k)` of the steps `idx`, summed for decisions.
+    ///
+    /// # Shapes
+    /// - `phi`: `[idx.len(), 2, H, W]`
+    fn local_energies(&self, phi: Tensor<4>, idx: &[usize]) -> Vec<f64> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let residual = ipalm
             .energy
             .bspline()
-            .interpolate(self.coeffs.clone(), phi.clone())
-            - self.before.clone();
+            .interpolate(pick(&self.coeffs, idx), phi.clone())
+            - pick(&self.before, idx);
         let data_scale = self.steps
             / (ipalm.energy.params().delta
                 * 2.0
                 * ipalm.layout.channels() as f64
                 * grid.pixels() as f64);
-        let e = self.smooth_decision(phi)
+        let e = self.smooth_decision(phi, idx)
             + grid
                 .decision_sum_each(residual.square())
                 .mul_scalar(data_scale);
         read_scalars(grid, vec![e])
     }
 
-    fn linearise_at(&self, point: Tensor<4>) -> Result<Linearised> {
+    /// The linearisation of the steps `steps` around `point`, `[steps.len(), 2, H, W]`.
+    fn linearise_at(&self, point: Tensor<4>, steps: &[usize]) -> Result<Linearised> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let p = ipalm.energy.params();
         let leaf = point.clone().detach().require_grad();
         // The S_k are independent: the gradient of their sum is each one's gradient.
-        let smooth = regularizer(leaf.clone(), self.a.clone(), p.lambda, p.mu)
+        let smooth = regularizer(leaf.clone(), pick(&self.a, steps), p.lambda, p.mu)
             .sum()
             .mul_scalar(self.steps);
         let grads = smooth.backward();
@@ -122,7 +156,7 @@ impl Deformations<'_> {
         let v = read_scalars(
             grid,
             vec![
-                self.smooth_decision(point.clone()),
+                self.smooth_decision(point.clone(), steps),
                 grid.decision_sum_each(gradient.clone().square()),
             ],
         );
@@ -130,7 +164,7 @@ impl Deformations<'_> {
             return Err(Error::NonFinite {
                 what: format!(
                     "step k = {}: K·R at the linearisation point is {}, |grad|^2 = {}",
-                    bad + 1,
+                    steps[bad] + 1,
                     v[bad],
                     v[k + bad]
                 ),
@@ -142,71 +176,73 @@ impl Deformations<'_> {
                 grid,
                 ipalm.energy.bspline(),
                 &ipalm.sobel,
-                self.coeffs.clone(),
-                self.before.clone(),
+                pick(&self.coeffs, steps),
+                pick(&self.before, steps),
                 point.clone(),
                 kappa,
             ),
+            steps: steps.to_vec(),
             point,
             smooth: v[..k].to_vec(),
             gradient,
         })
     }
 
-    /// The searches of the `active` steps in lockstep: every round evaluates one trial `L`
-    /// per undecided step as one batched prox and reads back `min det J`, `S`, `⟨g, d⟩` and
-    /// `‖d‖²` of all of them at once.
-    fn search(
-        &self,
-        lin: &Linearised,
-        stored: &[f64],
-        active: &[bool],
-    ) -> Result<Vec<Option<Search<Tensor<4>>>>> {
+    /// The searches of the steps `lin` linearises, in lockstep from the stored `L_φ,k`: every
+    /// round evaluates one trial `L` per undecided step as one batched prox of those steps
+    /// only and reads back `min det J`, `S`, `⟨g, d⟩` and `‖d‖²` of all of them at once.
+    /// Item `j` of the result is step `lin.steps[j]`'s.
+    fn search(&self, lin: &Linearised, stored: &[f64]) -> Result<Vec<Search<Tensor<4>>>> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let bt = ipalm.config.backtracking;
         let slack = ipalm.slack();
-        let k = stored.len();
+        let k = lin.steps.len();
         let mut searches = Lockstep::new(
-            (0..k)
-                .map(|i| active[i].then(|| SearchRun::new(&bt, stored[i])))
+            lin.steps
+                .iter()
+                .map(|&s| Some(SearchRun::new(&bt, stored[s])))
                 .collect(),
         );
         while let Some(trial) = searches.round() {
-            let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
-            let candidates = lin.candidates(&l);
-            let d = candidates.clone() - lin.point.clone();
+            let idx = indices(k, |j| trial[j].is_some());
+            let l: Vec<f64> = idx.iter().filter_map(|&j| trial[j]).collect();
+            let sub = lin.select(&idx);
+            let candidates = sub.candidates(&l);
+            let d = candidates.clone() - sub.point.clone();
             let v = read_scalars(
                 grid,
                 vec![
                     min_det_each(candidates.clone()),
-                    self.smooth_decision(candidates.clone()),
-                    grid.decision_sum_each(lin.gradient.clone() * d.clone()),
+                    self.smooth_decision(candidates.clone(), &sub.steps),
+                    grid.decision_sum_each(sub.gradient.clone() * d.clone()),
                     grid.decision_sum_each(d.square()),
                 ],
             );
-            for i in 0..k {
-                let Some(l) = trial[i] else {
-                    continue;
-                };
-                let outcome = if !(v[i] > 0.0) {
+            let n = idx.len();
+            for (j, (&i, &l)) in idx.iter().zip(&l).enumerate() {
+                let outcome = if !(v[j] > 0.0) {
                     Trial::Inadmissible
                 } else if bt.accepts(
-                    v[k + i],
-                    lin.smooth[i],
-                    v[2 * k + i],
-                    v[3 * k + i],
+                    v[n + j],
+                    sub.smooth[j],
+                    v[2 * n + j],
+                    v[3 * n + j],
                     l,
                     slack,
                 ) {
-                    Trial::Accepted(item(&candidates, i))
+                    Trial::Accepted(item(&candidates, j))
                 } else {
                     Trial::Rejected
                 };
                 searches.record(i, outcome);
             }
         }
-        Ok(searches.finish())
+        Ok(searches
+            .finish()
+            .into_iter()
+            .map(|s| s.expect("every step searches"))
+            .collect())
     }
 }
 
@@ -293,12 +329,12 @@ impl Ipalm {
         } else {
             (phi.clone(), vec![false; k])
         };
-        let lin = problem.linearise_at(point)?;
-        let found = problem.search(&lin, &stored, &vec![true; k])?;
+        let all = indices(k, |_| true);
+        let lin = problem.linearise_at(point, &all)?;
+        let found = problem.search(&lin, &stored)?;
         let mut pending: Vec<Pending> = found
             .into_iter()
             .map(|search| {
-                let search = search.expect("every step searched");
                 let accepted = search.lipschitz;
                 Pending {
                     step: DeformationStep {
@@ -319,28 +355,28 @@ impl Ipalm {
             .collect();
 
         if self.config.safeguard {
-            let current = problem.local_energies(phi.clone());
+            let current = problem.local_energies(phi.clone(), &all);
             let tolerance: Vec<f64> = current.iter().map(|e| self.slack() * e.abs()).collect();
             let rises = |i: usize, e: f64| !(e <= current[i] + tolerance[i]);
-            let candidates = |pending: &[Pending]| {
-                stack(k, |i| {
-                    pending[i]
+            // The candidates of the steps `idx` (`φ_k` where dropped).
+            let candidates = |pending: &[Pending], idx: &[usize]| {
+                stack(idx.len(), |j| {
+                    pending[idx[j]]
                         .candidate
                         .clone()
-                        .unwrap_or_else(|| item(&phi, i))
+                        .unwrap_or_else(|| item(&phi, idx[j]))
                 })
             };
-            let mut energy = problem.local_energies(candidates(&pending));
+            let mut energy = problem.local_energies(candidates(&pending, &all), &all);
             // Restart the inertia of every k whose extrapolated step raised e.
-            let restart: Vec<bool> = (0..k)
-                .map(|i| pending[i].candidate.is_some() && rises(i, energy[i]) && extrapolated[i])
-                .collect();
+            let restart = indices(k, |i| {
+                pending[i].candidate.is_some() && rises(i, energy[i]) && extrapolated[i]
+            });
             let mut restarted_lin = None;
-            if restart.iter().any(|&r| r) {
-                let lin = problem.linearise_at(phi.clone())?;
-                let found = problem.search(&lin, &stored, &restart)?;
-                for (i, search) in found.into_iter().enumerate() {
-                    let Some(search) = search else { continue };
+            if !restart.is_empty() {
+                let lin = problem.linearise_at(pick(&phi, &restart), &restart)?;
+                let found = problem.search(&lin, &stored)?;
+                for (&i, search) in restart.iter().zip(found) {
                     let p = &mut pending[i];
                     p.step.restarted = true;
                     p.restarted = true;
@@ -350,14 +386,17 @@ impl Ipalm {
                     p.accepted = search.lipschitz;
                     p.doubled = search.lipschitz;
                 }
-                energy = problem.local_energies(candidates(&pending));
+                let e = problem.local_energies(candidates(&pending, &restart), &restart);
+                for (&i, e) in restart.iter().zip(e) {
+                    energy[i] = e;
+                }
                 restarted_lin = Some(lin);
             }
             // Double L while e still rises, each k on its own linearisation.
             let mut doubling: Vec<bool> = (0..k)
                 .map(|i| pending[i].candidate.is_some() && rises(i, energy[i]))
                 .collect();
-            while doubling.iter().any(|&d| d) {
+            loop {
                 for (i, p) in pending.iter_mut().enumerate() {
                     if !doubling[i] {
                         continue;
@@ -370,23 +409,27 @@ impl Ipalm {
                     p.step.safeguard_doublings += 1;
                     p.doubled *= 2.0;
                 }
-                if !doubling.iter().any(|&d| d) {
+                let idx = indices(k, |i| doubling[i]);
+                if idx.is_empty() {
                     break;
                 }
-                let l: Vec<f64> = pending.iter().map(|p| p.doubled).collect();
-                let from_point = lin.candidates(&l);
-                let from_restart = restarted_lin.as_ref().map(|r| r.candidates(&l));
-                for (i, p) in pending.iter_mut().enumerate() {
-                    if doubling[i] {
-                        p.candidate = Some(match (&from_restart, p.restarted) {
-                            (Some(r), true) => item(r, i),
-                            _ => item(&from_point, i),
-                        });
+                let (again, fresh): (Vec<usize>, Vec<usize>) =
+                    idx.iter().partition(|&&i| pending[i].restarted);
+                for (around, ks) in [(Some(&lin), fresh), (restarted_lin.as_ref(), again)] {
+                    if ks.is_empty() {
+                        continue;
+                    }
+                    let around = around.expect("a restarted step has its linearisation");
+                    let items: Vec<usize> = ks.iter().map(|&i| around.item_of(i)).collect();
+                    let l: Vec<f64> = ks.iter().map(|&i| pending[i].doubled).collect();
+                    let from = around.select(&items).candidates(&l);
+                    for (j, &i) in ks.iter().enumerate() {
+                        pending[i].candidate = Some(item(&from, j));
                     }
                 }
-                energy = problem.local_energies(candidates(&pending));
-                for i in 0..k {
-                    doubling[i] = doubling[i] && rises(i, energy[i]);
+                let e = problem.local_energies(candidates(&pending, &idx), &idx);
+                for (&i, e) in idx.iter().zip(e) {
+                    doubling[i] = rises(i, e);
                 }
             }
         }
@@ -439,12 +482,12 @@ impl Ipalm {
             f_k.clone()
         };
         // φ_k is stored at k − 1, φ_{k+1} at k.
-        let sampler = bspline.sampler(take(&state.phi, -1));
+        let phis = take(&state.phi, -1);
+        let sampler = bspline.sampler(phis.clone());
         let next_warped =
             bspline.interpolate(bspline.coefficients(take(&state.f, 1)), take(&state.phi, 0));
         let before = take(&state.f, -1);
         let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
-        let per_item = |values: Vec<f64>| -> Tensor<4> { grid.tensor(values, [n, 1, 1, 1]) };
 
         let mut blocks: Vec<Tensor<4>> = Vec::new();
         let mut records: Vec<FeatureStep> = (0..n)
@@ -460,8 +503,19 @@ impl Ipalm {
             let prev = before.clone().narrow(1, start, len);
             let next = next_warped.clone().narrow(1, start, len);
             let warp = |x: Tensor<4>| sampler.sample(bspline.coefficients(x));
-            let residuals =
-                |x: Tensor<4>, warped: Tensor<4>| (warped - prev.clone(), next.clone() - x);
+            // The frames `items` only (the trials of the frames still undecided).
+            let warp_items = |x: Tensor<4>, items: &[usize]| {
+                if items.len() == n {
+                    warp(x)
+                } else {
+                    bspline
+                        .sampler(pick(&phis, items))
+                        .sample(bspline.coefficients(x))
+                }
+            };
+            let residuals = |x: Tensor<4>, warped: Tensor<4>, items: &[usize]| {
+                (warped - pick(&prev, items), pick(&next, items) - x)
+            };
             // The squared norms of each item's two residuals, `[n]` each, summed for decisions;
             // `Q` is their sum times `scale`, taken on the host.
             let norms_each = |(moved, fixed): &(Tensor<4>, Tensor<4>)| {
@@ -483,7 +537,8 @@ impl Ipalm {
             let grads = q.backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
             let warped_tilde = warped.detach();
-            let mut parts = norms_each(&residuals(x_tilde.clone(), warped_tilde.clone()));
+            let all = indices(n, |_| true);
+            let mut parts = norms_each(&residuals(x_tilde.clone(), warped_tilde.clone(), &all));
             parts.push(grid.decision_sum_each(grad.clone().square()));
             let v = read_scalars(grid, parts);
             let q_tilde: Vec<f64> = (0..n).map(|i| (v[i] + v[n + i]) * scale).collect();
@@ -503,30 +558,29 @@ impl Ipalm {
                     .collect(),
             );
             while let Some(trial) = searches.round() {
-                let l: Vec<f64> = trial.iter().map(|l| l.unwrap_or(1.0)).collect();
-                let inverse = per_item(l.iter().map(|l| 1.0 / l).collect());
-                let candidates = x_tilde.clone() - grad.clone() * inverse;
-                let warped = warp(candidates.clone());
+                let idx = indices(n, |i| trial[i].is_some());
+                let l: Vec<f64> = idx.iter().filter_map(|&i| trial[i]).collect();
+                let m = idx.len();
+                let inverse = grid.tensor(l.iter().map(|l| 1.0 / l).collect(), [m, 1, 1, 1]);
+                let candidates = pick(&x_tilde, &idx) - pick(&grad, &idx) * inverse;
+                let warped = warp_items(candidates.clone(), &idx);
                 // ‖T[d, φ_k]‖² = ‖T[x_new, φ_k] − T[x̃, φ_k]‖² of each item: the exact remainder
                 // of the quadratic Q (see the sequential feature step).
                 let moved =
-                    grid.decision_sum_each((warped.clone() - warped_tilde.clone()).square());
-                let mut parts = norms_each(&residuals(candidates.clone(), warped));
+                    grid.decision_sum_each((warped.clone() - pick(&warped_tilde, &idx)).square());
+                let mut parts = norms_each(&residuals(candidates.clone(), warped, &idx));
                 parts.push(moved);
                 let v = read_scalars(grid, parts);
-                for i in 0..n {
-                    let Some(l) = trial[i] else {
-                        continue;
-                    };
-                    norms[i] = (v[i], v[n + i]);
-                    let q_new = (v[i] + v[n + i]) * scale;
+                for (j, (&i, &l)) in idx.iter().zip(&l).enumerate() {
+                    norms[i] = (v[j], v[m + j]);
+                    let q_new = (v[j] + v[m + j]) * scale;
                     let (g2, q0) = (norm2[i], q_tilde[i]);
                     // x_new − x̃ = −∇Q/L: ‖x_new − x̃‖² = ‖∇Q‖²/L²; the test on the exact
                     // remainder scale·(‖T[d, φ_k]‖² + ‖d‖²), as the sequential feature step.
                     let d2 = g2 / (l * l);
-                    let remainder = scale * (v[2 * n + i] + d2);
+                    let remainder = scale * (v[2 * m + j] + d2);
                     let outcome = if bt.accepts_remainder(q_new, q0, remainder, d2, l, slack) {
-                        Trial::Accepted(item(&candidates, i))
+                        Trial::Accepted(item(&candidates, j))
                     } else {
                         Trial::Rejected
                     };

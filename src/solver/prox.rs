@@ -32,6 +32,18 @@ pub struct LinearisedData {
     moments: Option<Tensor<4>>,
 }
 
+/// Items `items` of a stacked tensor (dimension 0), in that order; the tensor itself when
+/// `items` is all of it in order.
+pub(crate) fn pick<const D: usize>(t: &Tensor<D>, items: &[usize]) -> Tensor<D> {
+    if items.len() == t.dims()[0] && items.iter().enumerate().all(|(j, &i)| i == j) {
+        return t.clone();
+    }
+    Tensor::cat(
+        items.iter().map(|&i| t.clone().narrow(0, i, 1)).collect(),
+        0,
+    )
+}
+
 /// The residual and slopes of the linearisation, for inspection and tests.
 #[derive(Clone, Debug)]
 pub struct Linearisation {
@@ -109,7 +121,28 @@ impl LinearisedData {
             return Self::new(grid, lin, phi_tilde, kappa);
         }
         let warped = bspline.interpolate(coeffs_k, phi_tilde.clone());
-        let m = slopes::moments(warped, f_km1, phi_tilde);
+        Self::from_moments(grid, slopes::moments(warped, f_km1, phi_tilde), kappa)
+    }
+
+    /// The linearisations of the items `items` of a batch, in that order.
+    pub fn select(&self, items: &[usize]) -> Self {
+        match &self.moments {
+            // The planes are views of the moments: one copy, not two.
+            Some(m) => Self::from_moments(&self.grid, pick(m, items), self.kappa),
+            None => Self {
+                grid: self.grid.clone(),
+                kappa: self.kappa,
+                a00: pick(&self.a00, items),
+                a01: pick(&self.a01, items),
+                a11: pick(&self.a11, items),
+                v: pick(&self.v, items),
+                moments: None,
+            },
+        }
+    }
+
+    /// The linearisation held by the fused kernel's moments `[N, 5, H, W]`.
+    fn from_moments(grid: &Grid, m: Tensor<4>, kappa: f64) -> Self {
         Self {
             grid: grid.clone(),
             kappa,

@@ -12,11 +12,13 @@ use deepmorph::model::energy::data::data_term;
 use deepmorph::model::energy::regularizer::regularizer;
 use deepmorph::model::grid::Accumulation;
 use deepmorph::model::layout::FeatureLayout;
+use deepmorph::model::sobel::Sobel;
 use deepmorph::model::warp::BSpline;
 use deepmorph::solver::backtracking::Backtracking;
 use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, LevelState, SweepKind, initial_lipschitz};
 use deepmorph::solver::multilevel::{Multilevel, MultilevelConfig};
 use deepmorph::solver::observer::{Phase, Termination};
+use deepmorph::solver::prox::LinearisedData;
 use deepmorph::{Backend, EnergyParams, Grid, Precision};
 
 /// A soft blob centred at `(cy, cx)` on an `n × n` grid, `[1, 3, n, n]`.
@@ -690,6 +692,65 @@ fn converged_features_do_not_freeze(backend: Backend) {
     }
 }
 
+/// The batched schedule decides each step on the items still undecided only: an item's
+/// decision sum and its prox must then be what they are inside the whole batch, bit for
+/// bit, or evaluating fewer items would change the morph.
+fn a_batch_item_is_decided_as_inside_the_whole_batch(backend: Backend) {
+    let device = device(backend, Precision::F32, false);
+    let (h, w, n, c) = (20, 24, 3, 5);
+    let grid = Grid::new(h, w, &device, Precision::F32.dtype()).unwrap();
+    let wave = |seed: f64, len: usize, amplitude: f64| -> Vec<f64> {
+        (0..len)
+            .map(|i| ((i as f64 * 0.377 + seed).sin() * amplitude))
+            .collect()
+    };
+    let t: Tensor<4> = grid.tensor(wave(0.4, n * c * h * w, 2.0), [n, c, h, w]);
+    let each = values(grid.decision_sum_each(t.clone()));
+    for (i, got) in each.iter().enumerate() {
+        let alone = values(grid.decision_sum(t.clone().narrow(0, i, 1)))[0];
+        assert_eq!(got.to_bits(), alone.to_bits(), "{backend:?}, item {i}");
+    }
+
+    let bspline = BSpline::new(&grid);
+    let frames = |seed: f64| -> Tensor<4> {
+        grid.tensor(
+            wave(seed, n * c * h * w, 0.3)
+                .into_iter()
+                .map(|v| v + 0.5)
+                .collect(),
+            [n, c, h, w],
+        )
+    };
+    let point = grid.identity(n) + grid.tensor(wave(2.1, n * 2 * h * w, 0.4), [n, 2, h, w]);
+    let data = LinearisedData::around(
+        &grid,
+        &bspline,
+        &Sobel::new(&grid),
+        bspline.coefficients(frames(0.9)),
+        frames(1.7),
+        point.clone(),
+        0.05,
+    );
+    let l = [0.7, 3.0, 0.2];
+    let whole = data.prox_each(point.clone(), &l);
+    let items = [2, 0];
+    let picked = Tensor::cat(
+        items
+            .iter()
+            .map(|&i| point.clone().narrow(0, i, 1))
+            .collect(),
+        0,
+    );
+    let some = data.select(&items).prox_each(picked, &items.map(|i| l[i]));
+    for (j, &i) in items.iter().enumerate() {
+        assert_eq!(
+            values(some.clone().narrow(0, j, 1)),
+            values(whole.clone().narrow(0, i, 1)),
+            "{backend:?}: item {i} of the selection"
+        );
+    }
+}
+
 on_each_cpu_backend!(
     a_carried_sweep_equals_a_fresh_one,
     converged_features_do_not_freeze,
@@ -701,6 +762,7 @@ on_each_cpu_backend!(
     float64_accumulation_decides_what_float32_rounding_flips,
     feature_blocks_start_from_the_data_curvature,
     stacked_rgb_parts_equal_the_rgb_part_of_the_stack,
+    a_batch_item_is_decided_as_inside_the_whole_batch,
 );
 
 /// The non-finite path on every backend, wgpu included.
