@@ -32,9 +32,9 @@ fn item(t: &Tensor<4>, i: usize) -> Tensor<4> {
     t.clone().narrow(0, i, 1)
 }
 
-/// A stack built item by item from `pick(i)`.
-fn stack(n: usize, pick: impl Fn(usize) -> Tensor<4>) -> Tensor<4> {
-    Tensor::cat((0..n).map(pick).collect(), 0)
+/// A stack built item by item from `item_at(i)`.
+fn stack(n: usize, item_at: impl Fn(usize) -> Tensor<4>) -> Tensor<4> {
+    Tensor::cat((0..n).map(item_at).collect(), 0)
 }
 
 /// The indices `i < n` where `keep(i)`.
