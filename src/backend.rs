@@ -21,8 +21,8 @@ use crate::error::{Error, Result};
 /// - [`Gather::Rows`]: the coefficients laid out channels-last (`[N·H·W, C]`) and one
 ///   `select` of `16·N·P` whole rows of `C` contiguous values; its backward adds rows
 ///   (`select_assign`). On a CPU a row is one memory copy, where `gather` pays for an index
-///   computation per scalar: 3.2× faster on flex for the deep model's 67 channels (README,
-///   "Benchmarks"). Not for wgpu: its `select_assign` runs one thread per channel over all
+///   computation per scalar: 3.2× faster on flex for the deep model's 67 channels
+///   (docs/benchmarks.md). Not for wgpu: its `select_assign` runs one thread per channel over all
 ///   indices, and on lavapipe it lost updates beyond 65,535 indices (BURN-NOTES).
 /// - [`Gather::RowsFrom`]`(c)`: rows for `c` channels or more, elements below. On ndarray the
 ///   row select's fixed cost (the permute to channels-last and the row-wise backward) only
@@ -170,7 +170,7 @@ impl Backend {
 
     /// The default backend: the first compiled one of [`Backend::ALL`]. Flex comes first: it
     /// needs half of ndarray's memory at the deep model's sizes and is maintained upstream,
-    /// though ndarray sweeps the RGB model faster today (README, "Benchmarks").
+    /// though ndarray sweeps the RGB model faster today (docs/benchmarks.md).
     pub fn default_compiled() -> Option<Backend> {
         Self::ALL.into_iter().find(|b| b.is_compiled())
     }

@@ -66,6 +66,25 @@ pub struct ChainOutcome {
     pub animation: bool,
 }
 
+impl ChainOutcome {
+    /// One line for a person after the run of a chain of `count` segments.
+    pub fn summary(&self, count: usize) -> String {
+        format!(
+            "chain of {count} segments: {} run, {}; wrote them to {}{}",
+            self.segments.len(),
+            self.segments
+                .last()
+                .map_or("none".into(), |(t, _)| t.to_string()),
+            self.folder.display(),
+            if self.animation {
+                ", with the whole chain's animations"
+            } else {
+                " (no chain animation: not every segment completed)"
+            }
+        )
+    }
+}
+
 impl ChainJob {
     /// Checks `config`, reads the images, resolves the working size from the first and
     /// prepares every segment at that size (refusing what would not fit in memory).

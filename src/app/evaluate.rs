@@ -22,6 +22,19 @@ pub struct Evaluation {
     pub composed: Tensor<4>,
 }
 
+impl Evaluation {
+    /// Writes the composed map and `metrics.json` into the morph's folder `dir`
+    /// (`deepmorph eval --write`).
+    ///
+    /// # Errors
+    ///
+    /// A file cannot be written.
+    pub fn write(&self, dir: &Path) -> Result<()> {
+        crate::io::outputs::save_composed(dir, self.composed.clone())?;
+        crate::app::job::write_metrics(dir, &self.metrics)
+    }
+}
+
 /// How far the aspect ratio of a ground truth may be from the morph's when the input's own
 /// size is unknown (the working size rounds each side to a multiple of up to 16 pixels).
 const ASPECT_TOLERANCE: f64 = 0.05;

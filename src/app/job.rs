@@ -167,6 +167,41 @@ impl MorphJob {
         self
     }
 
+    /// One line for a person before the run: "morph: rgb model, 256x256 (WxH), K = 15, 5
+    /// levels x 250 sweeps, flex backend, about 0.2 GiB".
+    pub fn describe(&self) -> String {
+        let (h, w) = self.working_size();
+        let solver = &self.config.solver;
+        format!(
+            "{}: {} model, {w}x{h} (WxH), K = {}, {} levels x {} sweeps, {} backend, about {:.1} GiB",
+            if self.inputs == Inputs::Demo {
+                "demo"
+            } else {
+                "morph"
+            },
+            format!("{:?}", self.config.model()).to_lowercase(),
+            solver.steps,
+            solver.levels,
+            solver.sweeps,
+            self.config.backend,
+            memory::gib(self.estimated_peak_bytes())
+        )
+    }
+
+    /// One line for a person before a segment of a chain runs: "a.png -> b.png, 256x192
+    /// (WxH), about 0.2 GiB".
+    pub fn describe_segment(&self) -> String {
+        let (h, w) = self.working_size();
+        let inputs = match &self.inputs {
+            Inputs::Files { a, b } => format!("{} -> {}, ", a.display(), b.display()),
+            Inputs::Demo => "the demo pair, ".into(),
+        };
+        format!(
+            "{inputs}{w}x{h} (WxH), about {:.1} GiB",
+            memory::gib(self.estimated_peak_bytes())
+        )
+    }
+
     /// The settings.
     pub fn config(&self) -> &MorphConfig {
         &self.config
@@ -389,6 +424,25 @@ impl MorphResult {
         }
         write_metrics(dir, &metrics)?;
         Ok(metrics)
+    }
+
+    /// What [`write`](Self::write) writes, for a person: "16 frames, morph.mp4, …,
+    /// metrics.json".
+    pub fn outputs_written(&self, job: &MorphJob) -> String {
+        let mut names = vec![format!("{} frames", self.frames.len())];
+        names.extend(job.config.video.iter().map(|f| f.file_name().to_string()));
+        names.extend(
+            [
+                "sheet.png",
+                "deformations",
+                "composed map",
+                "energy.csv",
+                "config.json",
+                "metrics.json",
+            ]
+            .map(String::from),
+        );
+        names.join(", ")
     }
 
     /// Whether the morph ran to its end.

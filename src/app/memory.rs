@@ -2,8 +2,8 @@
 //! run that cannot fit is refused with a clear message instead of being killed an hour in.
 //!
 //! The model is empirical: peak resident memory (GNU time's max RSS) of the release binary,
-//! flex backend, mimalloc, 2-core AMD EPYC, 2026-12-03, on `faces` unless said (README,
-//! "Memory", has the table). Past a fixed part (the program; for the deep model also VGG19's
+//! flex backend, mimalloc, 2-core AMD EPYC, 2026-12-03, on `faces` unless said
+//! (docs/reliability.md, "Memory", has the table). Past a fixed part (the program; for the deep model also VGG19's
 //! weights, read at the start and again after the solve for the feature-space path metric,
 //! while the morph is still held) it grows with the finest level's pixels (RGB: 650 bytes
 //! each; deep: VGG19's activations and the warp's channels-last copies of a 64-channel
@@ -145,7 +145,7 @@ pub fn gib(bytes: u64) -> f64 {
 mod tests {
     use super::*;
 
-    /// Measured peaks in MB (README, "Memory"): rows, columns, K, sweeps per level, deep,
+    /// Measured peaks in MB (docs/reliability.md, "Memory"): rows, columns, K, sweeps per level, deep,
     /// batched. `faces` with 3 levels (deep: 2 feature-only sweeps) unless said; 4 levels and
     /// 60 sweeps: K = 8, `--pre-sweeps 30`, and 80 × 128 / 88 × 128 is the motorcycle.
     const MEASURED: [(usize, usize, usize, usize, bool, bool, f64); 44] = [

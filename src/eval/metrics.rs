@@ -532,6 +532,7 @@ mod tests {
             data,
             lipschitz_phi: Vec::new(),
             lipschitz_f: Vec::new(),
+            streak_phi: Vec::new(),
             seconds: 0.0,
             restarts: 0,
             drops_phi: 0,

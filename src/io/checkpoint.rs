@@ -33,6 +33,10 @@ struct Header {
     width: usize,
     l_phi: Vec<f64>,
     l_f: Vec<Vec<f64>>,
+    /// The deformation searches' streaks (SPEC §6); absent in checkpoints written before the
+    /// accelerating shrink, which resume with `m = 0`.
+    #[serde(default)]
+    phi_streak: Vec<u32>,
     history: Vec<f64>,
     levels: Vec<LevelSummary>,
 }
@@ -57,6 +61,7 @@ pub fn save_checkpoint(dir: &Path, morph: &Morph) -> Result<()> {
         width,
         l_phi: state.l_phi.clone(),
         l_f: state.l_f.clone(),
+        phi_streak: state.phi_streak.clone(),
         history: morph.history.clone(),
         levels: morph
             .levels
@@ -143,6 +148,15 @@ pub fn load_checkpoint(
     let mut state = LevelState::new(f, phi, header.l_phi, header.l_f)?;
     state.f_prev = f_prev;
     state.phi_prev = phi_prev;
+    match header.phi_streak.len() {
+        0 => {}
+        n if n == k => state.phi_streak = header.phi_streak,
+        n => {
+            return Err(bad(format!(
+                "{n} deformation streaks for K = {k} steps (phi_streak must have K entries)"
+            )));
+        }
+    }
     Ok(Some(Resume {
         level: header.level,
         sweeps: header.sweeps,

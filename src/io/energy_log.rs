@@ -30,6 +30,10 @@ pub struct EnergyRecord {
     pub lipschitz_phi: Vec<f64>,
     /// Accepted `L_f,k` of every block, `k = 1..K−1`.
     pub lipschitz_f: Vec<f64>,
+    /// The streak `m` each deformation search of the sweep started with, `k = 1..K` (SPEC
+    /// §6: its first trial was `0.9^(m+1)·L_φ,k` of the previous sweep; the CSV's `m_phi`;
+    /// empty for sweep 0 and in logs of earlier versions).
+    pub streak_phi: Vec<u32>,
     /// Seconds since the start.
     pub seconds: f64,
     /// Deformation steps of the sweep whose inertia the safeguard restarted (SPEC §6).
@@ -66,7 +70,7 @@ impl EnergyLog {
     /// The log as CSV, with a header line. Lipschitz constants are `;`-separated lists.
     pub fn to_csv(&self) -> String {
         let mut out = String::from(
-            "level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds,restarts,drops_phi,drops_f,stop\n",
+            "level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds,restarts,drops_phi,drops_f,stop,m_phi\n",
         );
         let list = |v: &[f64]| {
             v.iter()
@@ -77,7 +81,7 @@ impl EnergyLog {
         for r in &self.records {
             let _ = writeln!(
                 out,
-                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3},{},{},{},{}",
+                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3},{},{},{},{},{}",
                 r.level,
                 r.height,
                 r.width,
@@ -91,14 +95,20 @@ impl EnergyLog {
                 r.restarts,
                 r.drops_phi,
                 r.drops_f,
-                r.stop.map_or("", LevelStop::name)
+                r.stop.map_or("", LevelStop::name),
+                r.streak_phi
+                    .iter()
+                    .map(u32::to_string)
+                    .collect::<Vec<_>>()
+                    .join(";")
             );
         }
         out
     }
 
-    /// Parses what [`to_csv`](Self::to_csv) wrote (also the 10-column files of earlier
-    /// versions, without the restart and drop counts and the stop reasons).
+    /// Parses what [`to_csv`](Self::to_csv) wrote (also the 10- and 14-column files of
+    /// earlier versions, without the restart and drop counts and the stop reasons, or
+    /// without the streaks).
     ///
     /// # Errors
     ///
@@ -120,7 +130,7 @@ impl EnergyLog {
             .map(|(i, line)| {
                 let bad = || format!("line {}: cannot parse `{line}`", i + 2);
                 let cols: Vec<&str> = line.split(',').collect();
-                if cols.len() != 10 && cols.len() != 14 {
+                if ![10, 14, 15].contains(&cols.len()) {
                     return Err(bad());
                 }
                 let int = |c: &str| c.parse::<usize>().map_err(|_| bad());
@@ -147,6 +157,15 @@ impl EnergyLog {
                         "non_finite" => Some(LevelStop::NonFinite),
                         _ => return Err(bad()),
                     },
+                    streak_phi: cols
+                        .get(14)
+                        .map_or(Ok(Vec::new()), |c| {
+                            c.split(';')
+                                .filter(|v| !v.is_empty())
+                                .map(str::parse)
+                                .collect::<std::result::Result<_, _>>()
+                        })
+                        .map_err(|_| bad())?,
                 })
             })
             .collect::<std::result::Result<_, _>>()?;
@@ -161,15 +180,16 @@ impl Observer for EnergyLog {
         if e.phase == Phase::Features {
             return;
         }
-        let (lipschitz_phi, lipschitz_f) = match e.report {
+        let (lipschitz_phi, lipschitz_f, streak_phi) = match e.report {
             Some(r) => (
                 r.deformation.iter().map(|s| s.lipschitz).collect(),
                 r.features
                     .iter()
                     .flat_map(|s| s.lipschitz.clone())
                     .collect(),
+                r.deformation.iter().map(|s| s.streak).collect(),
             ),
-            None => (Vec::new(), Vec::new()),
+            None => (Vec::new(), Vec::new(), Vec::new()),
         };
         self.records.push(EnergyRecord {
             level: e.level,
@@ -181,6 +201,7 @@ impl Observer for EnergyLog {
             data: e.data,
             lipschitz_phi,
             lipschitz_f,
+            streak_phi,
             seconds: e.seconds,
             restarts: e.report.map_or(0, |r| r.restarts()),
             drops_phi: e.report.map_or(0, |r| r.deformation_drops()),

@@ -97,8 +97,8 @@ pub(crate) mod flex {
     use rayon::prelude::*;
 
     use super::DecisionOps;
+    use crate::model::cpu::has_avx2;
     use crate::model::host_view::HostView;
-    use crate::model::warp::host::has_avx2;
 
     /// Values per task: a task's float64 partial sum then adds to the others in a fixed
     /// order, so the result does not depend on the thread count.

@@ -19,7 +19,7 @@ pub struct DeepConfig {
     /// `η`, the weight of the RGB channels inside the feature vector. Default 1e-6.
     pub eta: f64,
     /// `τ`, the RMS every level's deep feature map is scaled to (`--feature-rms`, SPEC §4).
-    /// Default 0.1, calibrated on the motorcycle stereo pair (README, "The deep model and its
+    /// Default 0.1, calibrated on the motorcycle stereo pair (docs/quality.md, "The deep model and its
     /// feature scale").
     pub feature_rms: f64,
     /// `J_pre`, feature-only sweeps after each prolongation (SPEC §7). Default 50.

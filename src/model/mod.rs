@@ -10,8 +10,9 @@
 //!   separable application to images.
 //! - [`warp`]: the cubic B-spline warp `T[f, φ]` (SPEC §1).
 //! - [`deformation`]: Jacobian and admissibility (SPEC §0, §2).
-//! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5);
-//!   `elementary`: vectorisable `ln` and `exp` for its float32 kernels.
+//! - [`energy`]: `W`, `R`, the anisotropy `a`, `D` and the path energy `E` (SPEC §2–§5).
+//! - `cpu`: what the custom ops' native CPU kernels share (element types, AVX2 dispatch,
+//!   vectorisable `ln` and `exp`); the kernels import from it, never from each other.
 //! - [`params`]: the energy's parameters with SPEC §9's defaults.
 //! - [`sobel`]: the Sobel derivative of the data-term linearisation (SPEC §6); [`slopes`]:
 //!   the linearisation's per-pixel moments over the channels, fused.
@@ -20,9 +21,9 @@
 //! - [`layout`], [`feature_model`]: the channels of a feature vector and the RGB or deep
 //!   feature vectors of each level (SPEC §4).
 
+pub(crate) mod cpu;
 pub mod decision;
 pub mod deformation;
-pub(crate) mod elementary;
 pub mod energy;
 pub mod feature_model;
 pub mod grid;

@@ -17,7 +17,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::Tensor;
 
-use crate::model::warp::host::{Real, Shared, has_avx2, simd_dispatch};
+use crate::model::cpu::{Real, Shared, simd_dispatch};
 
 /// The fused moments' primitive (flex only: the other backends compose them).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
@@ -206,8 +206,8 @@ mod flex {
     use burn::tensor::{DType, TensorData};
 
     use super::{SlopeOps, host_moments};
+    use crate::model::cpu::Real;
     use crate::model::host_view::HostView;
-    use crate::model::warp::host::Real;
 
     fn typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
         warped: &HostView,

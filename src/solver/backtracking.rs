@@ -1,6 +1,11 @@
 //! The backtracking search on a Lipschitz estimate, shared by the deformation and feature
-//! steps (SPEC §6): start from `shrink · L_stored`, double `L` until a trial is accepted, and
-//! give up after `max_trials`, keeping the `L` the step started from.
+//! steps (SPEC §6): start from `shrink^(m+1) · L_stored`, double `L` until a trial is
+//! accepted, and give up after `max_trials`, keeping the `L` the step started from.
+//!
+//! `m` is the search's *streak* (SPEC §6, "Where a search starts"): the sweeps in a row whose
+//! search for the same block accepted its first trial. Deformation searches carry it
+//! ([`LevelState::phi_streak`](super::ipalm::LevelState::phi_streak)); feature searches
+//! always start with `m = 0`, the plain `shrink · L_stored`.
 
 use crate::error::{Error, Result};
 
@@ -112,6 +117,14 @@ impl Backtracking {
         new.is_finite() && remainder.is_finite() && remainder <= 0.5 * l * norm2 + slack * old.abs()
     }
 
+    /// The factor `shrink^(m+1)` on the stored estimate where a search with streak `m`
+    /// starts (SPEC §6, "Where a search starts"). `m = 0` gives the plain `shrink`.
+    pub fn start_factor(&self, streak: u32) -> f64 {
+        // Repeated products, not `powi`: the factor of a streak is then exactly the product
+        // the shrinking sweeps would have applied one by one.
+        (0..=streak).fold(1.0, |factor, _| factor * self.shrink)
+    }
+
     /// Runs one search from the stored estimate `stored`: calls `trial(L)` for
     /// `L = shrink·stored, 2·shrink·stored, …` until it accepts or `max_trials` have run.
     ///
@@ -121,9 +134,25 @@ impl Backtracking {
     pub fn search<T>(
         &self,
         stored: f64,
+        trial: impl FnMut(f64) -> Result<Trial<T>>,
+    ) -> Result<Search<T>> {
+        self.search_from(stored, 0, trial)
+    }
+
+    /// [`search`](Self::search) with streak `m`: the first trial is
+    /// `shrink^(m+1)·stored` ([`start_factor`](Self::start_factor)); giving up still keeps
+    /// `stored`.
+    ///
+    /// # Errors
+    ///
+    /// Whatever `trial` returns.
+    pub fn search_from<T>(
+        &self,
+        stored: f64,
+        streak: u32,
         mut trial: impl FnMut(f64) -> Result<Trial<T>>,
     ) -> Result<Search<T>> {
-        let mut run = SearchRun::new(self, stored);
+        let mut run = SearchRun::from_streak(self, stored, streak);
         while let Some(l) = run.next() {
             let outcome = trial(l)?;
             if let Some(found) = run.record(outcome) {
@@ -148,11 +177,16 @@ pub struct SearchRun {
 }
 
 impl SearchRun {
-    /// A search starting from the stored estimate `stored`.
+    /// A search starting from the stored estimate `stored` (first trial `shrink · stored`).
     pub fn new(rule: &Backtracking, stored: f64) -> Self {
+        Self::from_streak(rule, stored, 0)
+    }
+
+    /// A search with streak `m` (first trial `shrink^(m+1) · stored`, SPEC §6).
+    pub fn from_streak(rule: &Backtracking, stored: f64, streak: u32) -> Self {
         Self {
             stored,
-            l: rule.shrink * stored,
+            l: rule.start_factor(streak) * stored,
             trials: 0,
             inadmissible: 0,
             max_trials: rule.max_trials,
@@ -325,6 +359,26 @@ mod tests {
             (found.lipschitz, found.trials, found.inadmissible),
             (36.0, 3, 1)
         );
+    }
+
+    #[test]
+    fn a_streak_accelerates_the_first_trial_but_not_the_estimate_kept_on_giving_up() {
+        let rule = Backtracking {
+            max_trials: 2,
+            ..Backtracking::default()
+        };
+        assert_eq!(rule.start_factor(0), 0.9);
+        assert!((rule.start_factor(2) - 0.729).abs() < 1e-15);
+        let mut tried = Vec::new();
+        let found = rule
+            .search_from(100.0, 1, |l| {
+                tried.push(l);
+                Ok(Trial::<()>::Rejected)
+            })
+            .unwrap();
+        assert!((tried[0] - 81.0).abs() < 1e-12 && (tried[1] - 162.0).abs() < 1e-12);
+        // SPEC §6, *Giving up*: the value the step started from, before the factor.
+        assert_eq!(found.lipschitz, 100.0);
     }
 
     #[test]

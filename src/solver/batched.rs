@@ -188,11 +188,16 @@ impl Deformations<'_> {
         })
     }
 
-    /// The searches of the steps `lin` linearises, in lockstep from the stored `L_φ,k`: every
-    /// round evaluates one trial `L` per undecided step as one batched prox of those steps
-    /// only and reads back `min det J`, `S`, `⟨g, d⟩` and `‖d‖²` of all of them at once.
-    /// Item `j` of the result is step `lin.steps[j]`'s.
-    fn search(&self, lin: &Linearised, stored: &[f64]) -> Result<Vec<Search<Tensor<4>>>> {
+    /// The searches of the steps `lin` linearises, in lockstep from the stored `L_φ,k` and
+    /// streaks `m_k` (SPEC §6): every round evaluates one trial `L` per undecided step as one
+    /// batched prox of those steps only and reads back `min det J`, `S`, `⟨g, d⟩` and `‖d‖²`
+    /// of all of them at once. Item `j` of the result is step `lin.steps[j]`'s.
+    fn search(
+        &self,
+        lin: &Linearised,
+        stored: &[f64],
+        streak: &[u32],
+    ) -> Result<Vec<Search<Tensor<4>>>> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let bt = ipalm.config.backtracking;
@@ -201,7 +206,7 @@ impl Deformations<'_> {
         let mut searches = Lockstep::new(
             lin.steps
                 .iter()
-                .map(|&s| Some(SearchRun::new(&bt, stored[s])))
+                .map(|&s| Some(SearchRun::from_streak(&bt, stored[s], streak[s])))
                 .collect(),
         );
         while let Some(trial) = searches.round() {
@@ -274,8 +279,7 @@ impl Ipalm {
             let a = anisotropy.unwrap_or_else(|| self.anisotropies(state));
             let (phi_new, steps) = self.deformation_steps(state, a.clone())?;
             for (i, (phi, step)) in phi_new.into_iter().zip(steps).enumerate() {
-                state.l_phi[i] = step.lipschitz;
-                state.phi_prev[i] = std::mem::replace(&mut state.phi[i], phi);
+                state.apply_deformation(i + 1, phi, &step);
                 report.deformation.push(step);
             }
             report.anisotropy = (0..k).map(|i| a.clone().narrow(0, i, 1)).collect();
@@ -320,6 +324,7 @@ impl Ipalm {
         };
         let phi = state.deformations();
         let stored = state.l_phi.clone();
+        let streak = state.phi_streak.clone();
         let (point, extrapolated) = if self.config.beta > 0.0 {
             let prev = Tensor::cat(state.phi_prev.clone(), 0);
             let e = phi.clone() + (phi.clone() - prev).mul_scalar(self.config.beta);
@@ -331,13 +336,15 @@ impl Ipalm {
         };
         let all = indices(k, |_| true);
         let lin = problem.linearise_at(point, &all)?;
-        let found = problem.search(&lin, &stored)?;
+        let found = problem.search(&lin, &stored, &streak)?;
         let mut pending: Vec<Pending> = found
             .into_iter()
-            .map(|search| {
+            .zip(&streak)
+            .map(|(search, &streak)| {
                 let accepted = search.lipschitz;
                 Pending {
                     step: DeformationStep {
+                        streak,
                         lipschitz: accepted,
                         trials: search.trials,
                         inadmissible_trials: search.inadmissible,
@@ -375,7 +382,7 @@ impl Ipalm {
             let mut restarted_lin = None;
             if !restart.is_empty() {
                 let lin = problem.linearise_at(pick(&phi, &restart), &restart)?;
-                let found = problem.search(&lin, &stored)?;
+                let found = problem.search(&lin, &stored, &streak)?;
                 for (&i, search) in restart.iter().zip(found) {
                     let p = &mut pending[i];
                     p.step.restarted = true;

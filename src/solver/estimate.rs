@@ -13,7 +13,7 @@
 //!
 //! The estimate assumes every level runs all its `J` sweeps: with a tolerance, levels
 //! usually stop sooner. It is an estimate, not a bound: sweeps from the initial state are
-//! not quite the sweeps of a running level (README, "Benchmarks", compares it with measured
+//! not quite the sweeps of a running level (docs/benchmarks.md compares it with measured
 //! runs); the progress report rescales the remaining time by how fast the run actually goes.
 
 use std::time::Instant;

@@ -111,6 +111,11 @@ pub struct LevelState {
     pub l_phi: Vec<f64>,
     /// Stored `L_f,k` per block, `k = 1..K−1`.
     pub l_f: Vec<Vec<f64>>,
+    /// The streak `m` of each deformation search, `k = 1..K` (SPEC §6, "Where a search
+    /// starts"): the sweeps in a row on this level whose search for `φ_k` accepted its first
+    /// trial with no safeguard restart. The next search starts from `0.9^(m+1)·L_φ,k`. Zero
+    /// in a new state (a new level).
+    pub phi_streak: Vec<u32>,
 }
 
 impl LevelState {
@@ -145,7 +150,30 @@ impl LevelState {
             phi,
             l_phi,
             l_f,
+            phi_streak: vec![0; k],
         })
+    }
+
+    /// Takes the deformation step of `k` (`1..=K`): `φ_k^prev ← φ_k`, `φ_k ← φ_new`, the
+    /// stored `L_φ,k` and the streak of SPEC §6. Both schedules apply their steps here, so
+    /// the rule of where the next search starts is written once.
+    ///
+    /// `φ_k^prev ← φ_k` also after a restart: the next sweep then extrapolates along the
+    /// restarted step, not the rejected direction (SPEC §6).
+    pub(super) fn apply_deformation(
+        &mut self,
+        k: usize,
+        phi_new: Tensor<4>,
+        step: &DeformationStep,
+    ) {
+        let i = k - 1;
+        self.l_phi[i] = step.lipschitz;
+        self.phi_streak[i] = if step.accepted_first_trial() {
+            step.streak + 1
+        } else {
+            0
+        };
+        self.phi_prev[i] = std::mem::replace(&mut self.phi[i], phi_new);
     }
 
     /// The initial state of SPEC §6/§7: `φ_k = Id`, `f_k = (1 − k/K) f_A + (k/K) f_B`, prev
@@ -221,6 +249,9 @@ pub enum SweepKind {
 /// What the deformation step of one `k` did.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DeformationStep {
+    /// The streak `m` the search started with: its first trial was `0.9^(m+1)` times the
+    /// stored `L_φ,k` (SPEC §6, "Where a search starts").
+    pub streak: u32,
     /// The `L_φ,k` stored for the next sweep: the one the backtracking accepted (not the
     /// safeguard's doubled value), or the one the step started from if it was dropped.
     pub lipschitz: f64,
@@ -239,6 +270,14 @@ pub struct DeformationStep {
     /// safeguard's last local energy; `None` where the step did not evaluate it (safeguard
     /// off, or dropped before the safeguard ran).
     pub residual_norm2: Option<f64>,
+}
+
+impl DeformationStep {
+    /// Whether the search accepted its first trial with no safeguard restart and the step
+    /// was taken: what extends the streak of SPEC §6 (anything else resets it).
+    pub fn accepted_first_trial(&self) -> bool {
+        self.trials == 1 && !self.restarted && !self.dropped
+    }
 }
 
 /// What the feature step of one `k` did, per block.
@@ -485,15 +524,21 @@ impl DeformationProblem<'_> {
         })
     }
 
-    /// The backtracking search of SPEC §6 step 2 around `lin`, from the stored `L`: one
-    /// read-back per trial (`min det J`, `S(φ_new)`, `⟨g, d⟩`, `‖d‖²`).
-    /// Accepts `(φ_new, S(φ_new))`, the latter as the test summed it.
-    fn search(&self, lin: &Linearised, stored: f64) -> Result<Search<(Tensor<4>, f64)>> {
+    /// The backtracking search of SPEC §6 step 2 around `lin`, from the stored `L` and the
+    /// streak `m` (first trial `0.9^(m+1)·L`): one read-back per trial (`min det J`,
+    /// `S(φ_new)`, `⟨g, d⟩`, `‖d‖²`). Accepts `(φ_new, S(φ_new))`, the latter as the test
+    /// summed it.
+    fn search(
+        &self,
+        lin: &Linearised,
+        stored: f64,
+        streak: u32,
+    ) -> Result<Search<(Tensor<4>, f64)>> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let bt = ipalm.config.backtracking;
         let slack = ipalm.slack();
-        bt.search(stored, |l| {
+        bt.search_from(stored, streak, |l| {
             let candidate = lin.candidate(l);
             let d = candidate.clone() - lin.point.clone();
             let v = read_scalars(
@@ -713,10 +758,7 @@ impl Ipalm {
             if let Some(anisotropy) = &anisotropy {
                 let a = anisotropy.clone().narrow(0, k - 1, 1);
                 let (phi_new, step) = self.deformation_step(state, k, a.clone(), carried.take())?;
-                state.l_phi[k - 1] = step.lipschitz;
-                // Also after a restart: φ_k^prev ← φ_k, so the next sweep extrapolates along
-                // the restarted step, not the rejected direction (SPEC §6).
-                state.phi_prev[k - 1] = std::mem::replace(&mut state.phi[k - 1], phi_new);
+                state.apply_deformation(k, phi_new, &step);
                 report.anisotropy.push(a);
                 report.record_deformation(k, step);
             }
@@ -757,7 +799,9 @@ impl Ipalm {
         };
         let phi = state.phi[k - 1].clone();
         let stored = state.l_phi[k - 1];
+        let streak = state.phi_streak[k - 1];
         let mut step = DeformationStep {
+            streak,
             lipschitz: stored,
             trials: 0,
             inadmissible_trials: 0,
@@ -785,7 +829,7 @@ impl Ipalm {
             .filter(|e| is_admissible(&self.grid, e.clone()));
         let mut lin =
             problem.linearise_at(extrapolated.clone().unwrap_or_else(|| phi.clone()), k)?;
-        let mut search = problem.search(&lin, stored)?;
+        let mut search = problem.search(&lin, stored, streak)?;
         step.trials += search.trials;
         step.inadmissible_trials += search.inadmissible;
         let Some((mut phi_new, mut smooth_new)) = search.accepted.take() else {
@@ -811,7 +855,7 @@ impl Ipalm {
                 // extrapolated point may lie above e(φ_k); around φ_k it tends to φ_k.
                 step.restarted = true;
                 lin = problem.linearise_at(phi.clone(), k)?;
-                let mut search = problem.search(&lin, stored)?;
+                let mut search = problem.search(&lin, stored, streak)?;
                 step.trials += search.trials;
                 step.inadmissible_trials += search.inadmissible;
                 let Some(restarted) = search.accepted.take() else {

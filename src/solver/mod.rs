@@ -8,8 +8,11 @@
 //! - [`ipalm`]: one sweep over the steps `k = 1..K`: deformation and feature blocks, the
 //!   safeguard and its inertia restart; `batched` runs the same steps as three stacked
 //!   blocks ([`ipalm::Schedule`]).
-//! - [`multilevel`]: the pyramid, prolongation, the deep model's feature-only sweeps, the
-//!   loop over sweeps and its termination.
+//! - [`level_run`]: one level as a state machine ([`level_run::LevelRun`]: `init` from
+//!   how its state began, `next_sweep`, `terminate`), the named energy record of a sweep,
+//!   and [`level_run::prolongate`].
+//! - [`multilevel`]: the pyramid and the executor: runs the levels coarse to fine and owns
+//!   the tolerance, the interrupt and the observers.
 //! - [`estimate`]: how long a morph will take, from sweeps timed on two of its levels.
 //! - [`observer`]: what the driver reports after each sweep, and to whom.
 
@@ -17,6 +20,7 @@ pub mod backtracking;
 mod batched;
 pub mod estimate;
 pub mod ipalm;
+pub mod level_run;
 pub mod multilevel;
 pub mod observer;
 pub mod prox;

@@ -13,10 +13,9 @@ use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
 use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
-use crate::model::resample::{Resize, prolongate_deformation};
-use crate::solver::ipalm::{
-    Ipalm, IpalmConfig, LevelState, SweepCarry, SweepKind, SweepReport, initial_lipschitz,
-};
+use crate::model::resample::Resize;
+use crate::solver::ipalm::{Ipalm, IpalmConfig, LevelState, initial_lipschitz};
+use crate::solver::level_run::{LevelRun, LevelStart, NonFinite, prolongate};
 use crate::solver::observer::{LevelStop, LevelSummary, Observer, Phase, SweepEvent, Termination};
 
 /// Settings of a multilevel morph (SPEC §7, §9).
@@ -33,7 +32,7 @@ pub struct MultilevelConfig {
     /// Convergence control: a level stops early once the relative decrease of `E` over the
     /// last [`TOLERANCE_WINDOW`] joint sweeps falls below this; 0 = off (every level runs
     /// its `J` sweeps). Default 1e-4: measured on the motorcycle at `J` = 250, 20 % less
-    /// time for the same endpoint error and 0.04 % more energy (README, "The solver at
+    /// time for the same endpoint error and 0.04 % more energy (docs/quality.md, "The solver at
     /// work").
     pub tolerance: f64,
     /// The energy's parameters.
@@ -197,6 +196,28 @@ pub struct Draft {
     pub deformations: Tensor<4>,
 }
 
+impl Draft {
+    /// The draft as the state of a coarser level (RGB, fresh Lipschitz estimates), to be
+    /// prolongated like one.
+    fn state(&self, k: usize, delta: f64) -> Result<(Grid, LevelState, FeatureLayout)> {
+        let layout = FeatureLayout::rgb();
+        let (l_phi, l_f) = initial_lipschitz(&self.grid, &layout, k, delta);
+        let phi = (0..k)
+            .map(|i| self.deformations.clone().narrow(0, i, 1))
+            .collect();
+        let state = LevelState::new(self.frames.clone(), phi, l_phi, l_f)?;
+        Ok((self.grid.clone(), state, layout))
+    }
+}
+
+/// What the executor of a level needs to know beyond the level's own run.
+struct LevelContext {
+    level: usize,
+    levels: usize,
+    pre_sweeps: usize,
+    started: Instant,
+}
+
 /// Where an interrupted morph stopped, to continue exactly from there (`--resume`): the
 /// whole iPALM state of its last level after its last full sweep.
 #[derive(Clone, Debug)]
@@ -339,243 +360,87 @@ impl Multilevel {
         let started = Instant::now();
         let k = cfg.steps;
 
-        let mut previous: Option<(Grid, LevelState, FeatureLayout)> = None;
-        let mut first = 0;
-        if let Some(draft) = &self.draft {
-            let pixels = draft.grid.height() * draft.grid.width();
-            first = sizes
-                .iter()
-                .position(|&(lh, lw)| lh * lw > pixels)
-                .unwrap_or(sizes.len() - 1);
-            let layout = FeatureLayout::rgb();
-            let (l_phi, l_f) = initial_lipschitz(&draft.grid, &layout, k, cfg.params.delta);
-            let phi = (0..k)
-                .map(|i| draft.deformations.clone().narrow(0, i, 1))
-                .collect();
-            let state = LevelState::new(draft.frames.clone(), phi, l_phi, l_f)?;
-            previous = Some((draft.grid.clone(), state, layout));
-        }
+        let (mut coarser, mut first) = match &self.draft {
+            Some(draft) => {
+                let pixels = draft.grid.height() * draft.grid.width();
+                let first = sizes
+                    .iter()
+                    .position(|&(lh, lw)| lh * lw > pixels)
+                    .unwrap_or(sizes.len() - 1);
+                (Some(draft.state(k, cfg.params.delta)?), first)
+            }
+            None => (None, 0),
+        };
         let mut summaries = Vec::with_capacity(sizes.len());
         if let Some(resume) = &self.resume {
             first = resume.level.min(sizes.len() - 1);
             summaries = resume.levels.clone();
         }
         for (level, &(lh, lw)) in sizes.iter().enumerate().skip(first) {
-            let resume_here = self.resume.as_ref().filter(|r| r.level == level);
             let downsampling = sizes.len() - 1 - level;
             let grid = Grid::new(lh, lw, device, dtype)?;
             let (layout, f_a, f_b) =
                 level_endpoints(model, &full, &grid, &u_a, &u_b, downsampling)?;
-            let prolongated = previous.is_some() || (resume_here.is_some() && level > 0);
-            let mut state = match (resume_here, previous.take()) {
-                (Some(resume), _) => resume.state.clone(),
-                (None, None) => LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,
-                (None, Some((coarse, coarse_state, coarse_layout))) => {
-                    let up = Resize::new(&coarse, &grid);
-                    let mut f = Vec::with_capacity(k + 1);
-                    f.push(f_a.clone());
-                    for (step, frame) in coarse_state.f[1..k].iter().enumerate() {
-                        let u = up.apply(coarse_layout.rgb_part(frame.clone()));
-                        f.push(match model {
-                            FeatureModel::Rgb => u,
-                            // SPEC §7: VGG channels from the convex combination of the
-                            // endpoints, η-scaled RGB from the prolongated images.
-                            FeatureModel::Deep(deep) => {
-                                let t = (step + 1) as f64 / k as f64;
-                                let features = f_a
-                                    .clone()
-                                    .narrow(1, 3, layout.channels() - 3)
-                                    .mul_scalar(1.0 - t)
-                                    + f_b
-                                        .clone()
-                                        .narrow(1, 3, layout.channels() - 3)
-                                        .mul_scalar(t);
-                                deep.stack(u, features)
-                            }
-                        });
-                    }
-                    f.push(f_b);
-                    let phi = prolongate_deformation(&coarse, &grid, coarse_state.deformations());
-                    let phi = (0..k).map(|i| phi.clone().narrow(0, i, 1)).collect();
-                    let (l_phi, l_f) = initial_lipschitz(&grid, &layout, k, cfg.params.delta);
-                    LevelState::new(f, phi, l_phi, l_f)?
-                }
+            let (start, state) = match (
+                self.resume.as_ref().filter(|r| r.level == level),
+                coarser.take(),
+            ) {
+                (Some(resume), _) => (
+                    LevelStart::Resumed {
+                        sweeps: resume.sweeps,
+                        history: resume.history.clone(),
+                        prolongated: level > 0,
+                    },
+                    resume.state.clone(),
+                ),
+                (None, None) => (
+                    LevelStart::Fresh,
+                    LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,
+                ),
+                (None, Some((coarse, coarse_state, coarse_layout))) => (
+                    LevelStart::Prolongated,
+                    prolongate(
+                        model,
+                        (&coarse, &coarse_state, &coarse_layout),
+                        &grid,
+                        &layout,
+                        f_a,
+                        f_b,
+                        cfg.params.delta,
+                    )?,
+                ),
             };
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
-
-            // The energy after a sweep, reusing the data terms the sweep evaluated (its report)
-            // and leaving the anisotropies it computed for the next sweep (`carry`).
-            let evaluate = |state: &LevelState,
-                            report: Option<&SweepReport>,
-                            carry: &mut SweepCarry|
-             -> std::result::Result<[f64; 3], String> {
-                let energy = ipalm.energy_after_carrying(state, report, carry);
-                let total = energy.total();
-                if total.is_finite() {
-                    return Ok([total, energy.regularizer_part(), energy.data_part()]);
-                }
-                let bad = energy.first_nonfinite().map_or(String::new(), |(k, r, d)| {
-                    format!(" (step k = {k}: K·R = {r}, (K/δ)·D = {d})")
-                });
-                Err(format!("the path energy is {total}{bad}"))
-            };
-            let mut report_sweep = |phase: Phase,
-                                    sweep: usize,
-                                    report: Option<&SweepReport>,
-                                    state: &LevelState,
-                                    numbers: [f64; 3],
-                                    stop: Option<LevelStop>| {
-                observer.sweep(&SweepEvent {
-                    level,
-                    levels: sizes.len(),
-                    grid: &grid,
-                    phase,
-                    sweep,
-                    sweeps: match phase {
-                        Phase::Features => model.pre_sweeps(),
-                        Phase::Joint => cfg.sweeps,
-                    },
-                    energy: numbers[0],
-                    regularizer: numbers[1],
-                    data: numbers[2],
-                    report,
-                    state,
-                    seconds: started.elapsed().as_secs_f64(),
-                    stop,
-                });
-            };
-            // SPEC §7: after a prolongation the deep model first fits the features to the
-            // prolongated deformations (pointless on the first level, where the convex
-            // combination is already optimal for φ = Id).
-            let resumed_sweeps = resume_here.map_or(0, |r| r.sweeps);
-            let pre = if prolongated && resumed_sweeps == 0 {
-                model.pre_sweeps()
-            } else {
-                0
-            };
-            let phases = [
-                (Phase::Features, pre, SweepKind::FeaturesOnly),
-                (Phase::Joint, cfg.sweeps, SweepKind::Joint),
-            ];
-            let mut stopped = None;
-            let mut history: Vec<f64> = match resume_here {
-                Some(r) if r.sweeps > 0 => r.history.clone(),
+            let mut run = LevelRun::init(
+                ipalm,
+                grid,
+                layout,
+                state,
+                &start,
+                model.pre_sweeps(),
+                cfg.sweeps,
+            )
+            .with_fault_after(
+                self.inject_nonfinite
+                    .and_then(|(l, sweep)| (l == level).then_some(sweep)),
+            );
+            let history = match start {
+                LevelStart::Resumed {
+                    sweeps, history, ..
+                } if sweeps > 0 => history,
                 _ => Vec::new(),
             };
-            let mut level_stop = LevelStop::Sweeps;
-            let mut joint_sweeps = resumed_sweeps;
-            let mut last_numbers: Option<[f64; 3]> = None;
-            // What each sweep leaves for the next on this level's state.
-            let mut carry = SweepCarry::default();
-            'phases: for (phase, sweeps, kind) in phases {
-                if sweeps == 0 && phase == Phase::Features {
-                    continue;
-                }
-                // A resumed level continues after its last sweep; its sweep 0 was reported.
-                let start = if phase == Phase::Joint {
-                    resumed_sweeps
-                } else {
-                    0
-                };
-                // The joint phase starts where the feature-only sweeps left the state: their
-                // last energy is its sweep 0.
-                let initial = (start == 0).then(|| {
-                    last_numbers
-                        .take()
-                        .map_or_else(|| evaluate(&state, None, &mut carry), Ok)
-                });
-                match initial {
-                    None => {}
-                    Some(Ok(numbers)) => {
-                        if phase == Phase::Joint {
-                            history.push(numbers[0]);
-                        }
-                        report_sweep(phase, 0, None, &state, numbers, None)
-                    }
-                    Some(Err(what)) => {
-                        stopped = Some(Termination::NonFinite {
-                            level,
-                            sweep: 0,
-                            phase,
-                            what,
-                        });
-                        break 'phases;
-                    }
-                }
-                for sweep in start + 1..=sweeps {
-                    // The last finite iterate: cheap to keep, these handles are the tensors
-                    // the sweep moves into `f_prev` and `phi_prev` anyway.
-                    let before = (state.f.clone(), state.phi.clone());
-                    let outcome = match ipalm.sweep_carrying(&mut state, kind, &mut carry) {
-                        Ok(report) => Ok(report),
-                        Err(Error::NonFinite { what }) => Err(what),
-                        Err(other) => return Err(other),
-                    };
-                    let injected = self.inject_nonfinite == Some((level, sweep));
-                    if injected {
-                        state.f[1] = state.f[1].clone().mul_scalar(f64::NAN);
-                        carry.clear();
-                    }
-                    match outcome.and_then(|report| {
-                        // A fault injected after the sweep is not in its report.
-                        evaluate(&state, (!injected).then_some(&report), &mut carry)
-                            .map(|n| (report, n))
-                    }) {
-                        Ok((report, numbers)) => {
-                            last_numbers = Some(numbers);
-                            let mut stop = None;
-                            if phase == Phase::Joint {
-                                joint_sweeps = sweep;
-                                history.push(numbers[0]);
-                                if converged(&history, cfg.tolerance) {
-                                    stop = Some(LevelStop::Converged);
-                                } else if sweep == sweeps {
-                                    stop = Some(LevelStop::Sweeps);
-                                }
-                            }
-                            report_sweep(phase, sweep, Some(&report), &state, numbers, stop);
-                            if stop == Some(LevelStop::Converged) {
-                                level_stop = LevelStop::Converged;
-                                break 'phases;
-                            }
-                        }
-                        Err(what) => {
-                            carry.clear();
-                            let (f, phi) = before;
-                            state.f_prev = f.clone();
-                            state.phi_prev = phi.clone();
-                            state.f = f;
-                            state.phi = phi;
-                            stopped = Some(Termination::NonFinite {
-                                level,
-                                sweep,
-                                phase,
-                                what,
-                            });
-                            break 'phases;
-                        }
-                    }
-                    if interrupt.load(Ordering::Relaxed) {
-                        stopped = Some(Termination::Interrupted {
-                            level,
-                            sweep: if phase == Phase::Joint { sweep } else { 0 },
-                        });
-                        break 'phases;
-                    }
-                }
-            }
-            summaries.push(LevelSummary {
+            let context = LevelContext {
                 level,
-                size: [lh, lw],
-                sweeps: joint_sweeps,
-                stop: match &stopped {
-                    Some(Termination::Interrupted { .. }) => LevelStop::Interrupted,
-                    Some(Termination::NonFinite { .. }) => LevelStop::NonFinite,
-                    _ => level_stop,
-                },
-            });
+                levels: sizes.len(),
+                pre_sweeps: model.pre_sweeps(),
+                started,
+            };
+            let (summary, history, stopped) =
+                self.execute(&mut run, &context, history, observer, interrupt)?;
+            summaries.push(summary);
             if stopped.is_some() || level + 1 == sizes.len() {
-                let anisotropy = ipalm.anisotropies(&state);
+                let (grid, state, layout, anisotropy) = run.terminate();
                 return Ok(Morph {
                     grid,
                     state,
@@ -586,8 +451,103 @@ impl Multilevel {
                     history,
                 });
             }
-            previous = Some((grid, state, layout));
+            coarser = Some(run.into_coarse());
         }
         unreachable!("the last level returns")
+    }
+
+    /// The executor of one level: drives `run` sweep by sweep, owns the tolerance (over
+    /// `history`, `E` after each joint sweep) and the interrupt, and tells `observer` after
+    /// every sweep. Returns the level's summary, its history, and why the morph stops here
+    /// (`None`: the level ran out of sweeps or converged, and the next one may follow).
+    ///
+    /// # Errors
+    ///
+    /// A failure other than a non-finite value (which ends the morph with
+    /// [`Termination::NonFinite`] and the last finite iterate).
+    fn execute(
+        &self,
+        run: &mut LevelRun,
+        context: &LevelContext,
+        mut history: Vec<f64>,
+        observer: &mut dyn Observer,
+        interrupt: &AtomicBool,
+    ) -> Result<(LevelSummary, Vec<f64>, Option<Termination>)> {
+        let cfg = &self.config;
+        let level = context.level;
+        let (height, width) = (run.grid().height(), run.grid().width());
+        let mut joint_sweeps = run.joint_sweeps_done();
+        let mut level_stop = LevelStop::Sweeps;
+        let mut stopped = None;
+        while let Some(outcome) = run.next_sweep()? {
+            let swept = match outcome {
+                Ok(swept) => swept,
+                Err(NonFinite { phase, sweep, what }) => {
+                    stopped = Some(Termination::NonFinite {
+                        level,
+                        sweep,
+                        phase,
+                        what,
+                    });
+                    break;
+                }
+            };
+            let mut stop = None;
+            if swept.phase == Phase::Joint {
+                joint_sweeps = swept.sweep;
+                history.push(swept.energy.total);
+                if swept.sweep > 0 {
+                    if converged(&history, cfg.tolerance) {
+                        stop = Some(LevelStop::Converged);
+                    } else if swept.sweep == cfg.sweeps {
+                        stop = Some(LevelStop::Sweeps);
+                    }
+                }
+            }
+            observer.sweep(&SweepEvent {
+                level,
+                levels: context.levels,
+                grid: run.grid(),
+                phase: swept.phase,
+                sweep: swept.sweep,
+                sweeps: match swept.phase {
+                    Phase::Features => context.pre_sweeps,
+                    Phase::Joint => cfg.sweeps,
+                },
+                energy: swept.energy.total,
+                regularizer: swept.energy.regularizer,
+                data: swept.energy.data,
+                report: swept.report.as_ref(),
+                state: run.state(),
+                seconds: context.started.elapsed().as_secs_f64(),
+                stop,
+            });
+            if stop == Some(LevelStop::Converged) {
+                level_stop = LevelStop::Converged;
+                break;
+            }
+            if swept.sweep > 0 && interrupt.load(Ordering::Relaxed) {
+                stopped = Some(Termination::Interrupted {
+                    level,
+                    sweep: if swept.phase == Phase::Joint {
+                        swept.sweep
+                    } else {
+                        0
+                    },
+                });
+                break;
+            }
+        }
+        let summary = LevelSummary {
+            level,
+            size: [height, width],
+            sweeps: joint_sweeps,
+            stop: match &stopped {
+                Some(Termination::Interrupted { .. }) => LevelStop::Interrupted,
+                Some(Termination::NonFinite { .. }) => LevelStop::NonFinite,
+                _ => level_stop,
+            },
+        };
+        Ok((summary, history, stopped))
     }
 }

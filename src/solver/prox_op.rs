@@ -19,7 +19,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::Tensor;
 
-use crate::model::warp::host::{Real, Shared};
+use crate::model::cpu::{Real, Shared};
 
 /// The fused trial's primitive (flex only: the other backends compose it).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
@@ -118,8 +118,8 @@ mod flex {
     use burn::tensor::{DType, TensorData};
 
     use super::{ProxOps, host_prox_step};
+    use crate::model::cpu::Real;
     use crate::model::host_view::HostView;
-    use crate::model::warp::host::Real;
 
     fn typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
         point: &HostView,

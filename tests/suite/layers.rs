@@ -1,4 +1,4 @@
-//! The crate's layers import only downwards (README, "Layout"): a module may use the layers
+//! The crate's layers import only downwards (docs/architecture.md, "Layout"): a module may use the layers
 //! listed before its own, never those after it, and two layers of the same rank (the solver
 //! and the deep features) not each other. Checked on the sources, so a new `use` that breaks
 //! the layering fails here.

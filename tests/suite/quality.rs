@@ -2,7 +2,8 @@
 //! morphed and evaluated (`deepmorph eval --truth`); the endpoint error must be small for
 //! the solver's deformations and large for deliberately wrong ones.
 //!
-//! Needs `../shared/data/images/single/chelsea.png`; skipped with a printed reason without.
+//! Needs `../shared/data/images/single/chelsea.png`; skipped with a printed reason without
+//! (a failure where `DEEPMORPH_REQUIRE_SHARED_DATA` is set, as in CI).
 
 use std::path::{Path, PathBuf};
 
@@ -22,18 +23,7 @@ fn deepmorph() -> Command {
 }
 
 fn shared_image(name: &str) -> Option<PathBuf> {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/images/single")
-        .join(name);
-    if path.is_file() {
-        Some(path)
-    } else {
-        eprintln!(
-            "skipped: {} is absent (test data of the team's checkout)",
-            path.display()
-        );
-        None
-    }
+    common::shared_data(&format!("images/single/{name}"))
 }
 
 /// `deepmorph eval OUT --truth TRUTH --write`, which must succeed.
@@ -101,6 +91,66 @@ fn synthetic_pair_is_recovered_and_a_wrong_map_scores_badly() {
         "eval and morph disagree"
     );
     assert_eq!(m.path, at_end.path, "eval and morph disagree on the path");
+    // Both of those ran the same code on the same files; these are computed here, from the
+    // written files alone: det J of each step (SPEC §2, forward differences) and the RMS
+    // distances between adjacent 8-bit frames.
+    let (shape, phi) = deepmorph::io::outputs::load_deformations(&out).unwrap();
+    let [k, _, h, w] = shape;
+    for (step, got) in m.deformations.iter().enumerate() {
+        let v = |axis: usize, i: usize, j: usize| {
+            let id = if axis == 0 { i } else { j } as f64;
+            f64::from(phi[((step * 2 + axis) * h + i) * w + j]) - id
+        };
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for i in 0..h {
+            for j in 0..w {
+                let d0 = |a| {
+                    if i + 1 < h {
+                        v(a, i + 1, j) - v(a, i, j)
+                    } else {
+                        0.0
+                    }
+                };
+                let d1 = |a| {
+                    if j + 1 < w {
+                        v(a, i, j + 1) - v(a, i, j)
+                    } else {
+                        0.0
+                    }
+                };
+                let det = (1.0 + d0(0)) * (1.0 + d1(1)) - d1(0) * d0(1);
+                (lo, hi) = (lo.min(det), hi.max(det));
+            }
+        }
+        assert!(
+            (got.min_det - lo).abs() < 1e-4 && (got.max_det - hi).abs() < 1e-4,
+            "step {}: eval's det J in [{}, {}], the files' in [{lo}, {hi}]",
+            step + 1,
+            got.min_det,
+            got.max_det
+        );
+    }
+    let frames: Vec<Vec<f64>> = (0..=k)
+        .map(|i| {
+            let path = out.join(deepmorph::io::outputs::frame_name(i, k));
+            let image = image::open(&path).unwrap().to_rgb8();
+            image
+                .as_raw()
+                .iter()
+                .map(|&b| f64::from(b) / 255.0)
+                .collect()
+        })
+        .collect();
+    for (i, got) in m.path.morph.adjacent.iter().enumerate() {
+        let (a, b) = (&frames[i], &frames[i + 1]);
+        let want =
+            (a.iter().zip(b).map(|(x, y)| (y - x).powi(2)).sum::<f64>() / a.len() as f64).sqrt();
+        assert!(
+            (got - want).abs() <= 1e-6 * want.max(1e-3),
+            "step {}: eval's distance {got}, the frames' {want}",
+            i + 1
+        );
+    }
     // K steps; the cross-fade is the straight line in pixel space, so no path of frames
     // between the same (8-bit) endpoints is shorter, and its steps are even.
     assert_eq!(m.path.morph.adjacent.len(), 4);

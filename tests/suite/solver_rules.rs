@@ -701,7 +701,7 @@ fn a_batch_item_is_decided_as_inside_the_whole_batch(backend: Backend) {
     let grid = Grid::new(h, w, &device, Precision::F32.dtype()).unwrap();
     let wave = |seed: f64, len: usize, amplitude: f64| -> Vec<f64> {
         (0..len)
-            .map(|i| ((i as f64 * 0.377 + seed).sin() * amplitude))
+            .map(|i| (i as f64 * 0.377 + seed).sin() * amplitude)
             .collect()
     };
     let t: Tensor<4> = grid.tensor(wave(0.4, n * c * h * w, 2.0), [n, c, h, w]);
@@ -751,7 +751,67 @@ fn a_batch_item_is_decided_as_inside_the_whole_batch(backend: Backend) {
     }
 }
 
+/// SPEC §6, "Where a search starts": a deformation search starts from `0.9^(m+1)·L_φ,k`,
+/// `m` the sweeps in a row whose search for this `k` accepted its first trial (no restart,
+/// no drop); anything else resets `m`. Followed sweep by sweep in both schedules, with the
+/// streak recomputed here from each step's own record, not by the solver's rule.
+fn deformation_searches_shrink_faster_while_they_accept_at_once(backend: Backend) {
+    use deepmorph::solver::ipalm::Schedule;
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let params = EnergyParams::rgb();
+    let layout = FeatureLayout::rgb();
+    let k = 3;
+    for schedule in [Schedule::Sequential, Schedule::Batched] {
+        let config = IpalmConfig {
+            schedule,
+            ..IpalmConfig::default()
+        };
+        let shrink = config.backtracking.shrink;
+        let ipalm = Ipalm::new(&grid, params, layout.clone(), config).unwrap();
+        let mut state = LevelState::initial(
+            &grid,
+            &layout,
+            blob(&grid, 6.0, 6.0),
+            blob(&grid, 8.0, 9.0),
+            k,
+            params.delta,
+        )
+        .unwrap();
+        let mut expected = vec![0u32; k];
+        let (mut longest, mut resets) = (0, 0);
+        for sweep in 1..=20 {
+            let before = state.l_phi.clone();
+            let report = ipalm.sweep(&mut state, SweepKind::Joint).unwrap();
+            for (i, step) in report.deformation.iter().enumerate() {
+                let what = format!("{backend:?} {schedule:?} sweep {sweep}, k = {}", i + 1);
+                assert_eq!(step.streak, expected[i], "{what}: {step:?}");
+                let first = step.trials == 1 && !step.restarted && !step.dropped;
+                if first {
+                    let start = before[i] * shrink.powi(expected[i] as i32 + 1);
+                    assert!(
+                        (step.lipschitz - start).abs() <= 1e-12 * start,
+                        "{what}: accepted L {} is not 0.9^(m+1)·{} = {start}",
+                        step.lipschitz,
+                        before[i]
+                    );
+                    expected[i] += 1;
+                } else {
+                    resets += usize::from(expected[i] > 0);
+                    expected[i] = 0;
+                }
+                longest = longest.max(expected[i]);
+            }
+            assert_eq!(state.phi_streak, expected, "{schedule:?} sweep {sweep}");
+        }
+        // The case must exercise the rule: a streak long enough to accelerate, and its end.
+        assert!(longest >= 2, "{schedule:?}: longest streak {longest}");
+        assert!(resets >= 1, "{schedule:?}: no streak ended");
+    }
+}
+
 on_each_cpu_backend!(
+    deformation_searches_shrink_faster_while_they_accept_at_once,
     a_carried_sweep_equals_a_fresh_one,
     converged_features_do_not_freeze,
     the_energy_after_a_sweep_reuses_the_sweeps_residuals,

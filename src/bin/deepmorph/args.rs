@@ -256,6 +256,54 @@ impl RunArgs {
     }
 }
 
+/// What a `morph` or `demo` command asks for, its settings resolved.
+pub(crate) enum Request {
+    /// One morph of two images (or the demo's, or the recorded ones).
+    Single(MorphConfig, Inputs, RunArgs),
+    /// A chain through three images or more.
+    Chain(MorphConfig, Vec<PathBuf>, RunArgs),
+}
+
+/// The request of `deepmorph morph IMAGES…` with its options.
+pub(crate) fn morph_request(
+    mut images: Vec<PathBuf>,
+    size: Option<(usize, usize)>,
+    max_side: Option<usize>,
+    run: RunArgs,
+) -> Result<Request> {
+    let (mut config, recorded) = run.resolve(MorphConfig::default())?;
+    config.size = working_size(size, max_side, config.size);
+    if run.resume.is_some() && !images.is_empty() {
+        bail!("--resume continues the recorded morph: give no images");
+    }
+    let inputs = match (images.len(), recorded) {
+        (0, Some(recorded)) => recorded,
+        (2, _) => {
+            let b = images.pop().expect("two images");
+            let a = images.pop().expect("two images");
+            Inputs::Files { a, b }
+        }
+        (3.., _) => return Ok(Request::Chain(config, images, run)),
+        _ => bail!(
+            "morph needs two images A and B, more for a chain, or --config with a run's \
+             config.json"
+        ),
+    };
+    Ok(Request::Single(config, inputs, run))
+}
+
+/// The request of `deepmorph demo` with its options.
+pub(crate) fn demo_request(size: Option<usize>, run: RunArgs) -> Result<Request> {
+    let (mut config, _) = run.resolve(MorphConfig::demo())?;
+    if let Some(side) = size {
+        config.size = WorkingSize::Exact {
+            height: side,
+            width: side,
+        };
+    }
+    Ok(Request::Single(config, Inputs::Demo, run))
+}
+
 /// `WxH` → `(H, W)`.
 pub fn parse_size(s: &str) -> std::result::Result<(usize, usize), String> {
     let bad = || format!("`{s}` is not WxH (e.g. 256x192)");

@@ -15,16 +15,14 @@ use clap::Parser;
 use deepmorph::app::chain::ChainJob;
 use deepmorph::app::config::{Inputs, MorphConfig};
 use deepmorph::app::evaluate::evaluate;
-use deepmorph::app::job::{MorphJob, write_metrics};
-use deepmorph::app::memory;
-use deepmorph::eval::synthetic::{Field, warped_pair};
-use deepmorph::io::images::{RgbImage, write_png};
-use deepmorph::io::output_folder::OutputFolder;
-use deepmorph::io::outputs::save_composed;
-use deepmorph::solver::observer::{Observer, Phase, SweepEvent, Termination};
+use deepmorph::app::hooks::TestHooks;
+use deepmorph::app::job::MorphJob;
+use deepmorph::app::warp::write_warped_pair;
+use deepmorph::eval::synthetic::Field;
+use deepmorph::solver::observer::Termination;
 use deepmorph::{Backend, Precision};
 
-use args::{Cli, Command, RunArgs, working_size};
+use args::{Cli, Command, Request, RunArgs, demo_request, morph_request};
 use progress::{Progress, Verbosity};
 
 /// The solver allocates and frees tensors of megabytes many times per sweep. glibc's malloc
@@ -55,7 +53,7 @@ fn main() {
 }
 
 fn run(cli: Cli) -> Result<i32> {
-    let (config, inputs, run) = match cli.command {
+    let request = match cli.command {
         Command::Eval {
             dir,
             truth,
@@ -77,8 +75,7 @@ fn run(cli: Cli) -> Result<i32> {
                 print!("{}", evaluation.metrics);
             }
             if write {
-                save_composed(&dir, evaluation.composed)?;
-                write_metrics(&dir, &evaluation.metrics)?;
+                evaluation.write(&dir)?;
             }
             return Ok(0);
         }
@@ -93,81 +90,33 @@ fn run(cli: Cli) -> Result<i32> {
             return warp(&image, field, amount, &output, force, backend);
         }
         Command::Morph {
-            mut images,
+            images,
             size,
             max_side,
             run,
-        } => {
-            let (mut config, recorded) = run.resolve(MorphConfig::default())?;
-            config.size = working_size(size, max_side, config.size);
-            if run.resume.is_some() && !images.is_empty() {
-                anyhow::bail!("--resume continues the recorded morph: give no images");
-            }
-            let inputs = match (images.len(), recorded) {
-                (0, Some(recorded)) => recorded,
-                (2, _) => {
-                    let b = images.pop().expect("two images");
-                    let a = images.pop().expect("two images");
-                    Inputs::Files { a, b }
-                }
-                (3.., _) => return chain(config, images, &run),
-                _ => anyhow::bail!(
-                    "morph needs two images A and B, more for a chain, or --config with a \
-                     run's config.json"
-                ),
-            };
-            (config, inputs, run)
-        }
-        Command::Demo { size, run } => {
-            let (mut config, _) = run.resolve(MorphConfig::demo())?;
-            if let Some(side) = size {
-                config.size = deepmorph::app::config::WorkingSize::Exact {
-                    height: side,
-                    width: side,
-                };
-            }
-            (config, Inputs::Demo, run)
-        }
+        } => morph_request(images, size, max_side, run)?,
+        Command::Demo { size, run } => demo_request(size, run)?,
     };
-    morph(config, inputs, &run)
+    match request {
+        Request::Single(config, inputs, run) => morph(config, inputs, &run),
+        Request::Chain(config, images, run) => chain(config, images, &run),
+    }
 }
 
 fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
-    let mut job = MorphJob::prepare(config, inputs)?.estimate_time(!args.quiet);
-    if let Some((level, sweep)) = level_and_sweep("DEEPMORPH_INJECT_NONFINITE")? {
-        job = job.inject_nonfinite(level, sweep);
-    }
+    let hooks = TestHooks::from_env()?;
+    let mut job = hooks.apply(MorphJob::prepare(config, inputs)?.estimate_time(!args.quiet));
     if let Some(dir) = &args.resume {
         job = job.resume_from(dir);
     }
     let folder = job.output_folder(args.output(), args.force || args.resume.is_some())?;
     let interrupt = stop_on_signals(folder.path().to_path_buf())?;
-    let mut interrupt_at = InterruptAt {
-        at: level_and_sweep("DEEPMORPH_INTERRUPT_AT")?,
-        flag: Arc::clone(&interrupt),
-    };
-    let verbosity = verbosity(args);
-    let config = job.config();
-    let (h, w) = job.working_size();
+    let mut interrupt_at = hooks.interrupter(Arc::clone(&interrupt));
     if !args.quiet {
         job.notes().iter().for_each(|note| eprintln!("{note}"));
-        let model = format!("{:?}", config.model()).to_lowercase();
-        let solver = &config.solver;
-        eprintln!(
-            "{}: {model} model, {w}x{h} (WxH), K = {}, {} levels x {} sweeps, {} backend, about {:.1} GiB",
-            if job.inputs() == &Inputs::Demo {
-                "demo"
-            } else {
-                "morph"
-            },
-            solver.steps,
-            solver.levels,
-            solver.sweeps,
-            config.backend,
-            memory::gib(job.estimated_peak_bytes())
-        );
+        eprintln!("{}", job.describe());
     }
-    let mut progress = Progress::new(verbosity);
+    let mut progress = Progress::new(verbosity(args));
     let result = job.run(&mut (&mut progress, &mut interrupt_at), &interrupt)?;
     drop(progress);
     let writing = WRITING
@@ -186,15 +135,9 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     if !args.quiet {
         let last = result.energy.records.last().map_or(f64::NAN, |r| r.energy);
         eprintln!(
-            "{termination} in {:.1} s, final E = {last:.6e}; wrote {} frames, {}, sheet.png, deformations, composed map, energy.csv, config.json, metrics.json to {}",
+            "{termination} in {:.1} s, final E = {last:.6e}; wrote {} to {}",
             result.seconds,
-            config.solver.steps + 1,
-            config
-                .video
-                .iter()
-                .map(|f| f.file_name())
-                .collect::<Vec<_>>()
-                .join(", "),
+            result.outputs_written(&job),
             out.display()
         );
         if args.verbose {
@@ -256,16 +199,7 @@ fn chain(config: MorphConfig, images: Vec<PathBuf>, args: &RunArgs) -> Result<i3
         |i, segment| {
             if !quiet {
                 segment.notes().iter().for_each(|note| eprintln!("{note}"));
-                let (h, w) = segment.working_size();
-                if let Inputs::Files { a, b } = segment.inputs() {
-                    eprintln!(
-                        "segment {}/{count}: {} -> {}, {w}x{h} (WxH), about {:.1} GiB",
-                        i + 1,
-                        a.display(),
-                        b.display(),
-                        memory::gib(segment.estimated_peak_bytes())
-                    );
-                }
+                eprintln!("segment {}/{count}: {}", i + 1, segment.describe_segment());
             }
         },
         &WRITING,
@@ -273,17 +207,7 @@ fn chain(config: MorphConfig, images: Vec<PathBuf>, args: &RunArgs) -> Result<i3
     drop(progress);
     let last = outcome.segments.last().map(|(t, _)| t.clone());
     if !quiet {
-        eprintln!(
-            "chain of {count} segments: {} run, {}; wrote them to {}{}",
-            outcome.segments.len(),
-            last.as_ref().map_or("none".into(), ToString::to_string),
-            outcome.folder.display(),
-            if outcome.animation {
-                ", with the whole chain's animations"
-            } else {
-                " (no chain animation: not every segment completed)"
-            }
-        );
+        eprintln!("{}", outcome.summary(count));
     }
     Ok(match last {
         Some(Termination::NonFinite { .. }) => EXIT_NONFINITE,
@@ -291,42 +215,6 @@ fn chain(config: MorphConfig, images: Vec<PathBuf>, args: &RunArgs) -> Result<i3
         _ if outcome.segments.len() < count => EXIT_INTERRUPTED,
         _ => 0,
     })
-}
-
-/// `LEVEL:SWEEP` from the environment variable `name`, for the tests' hooks:
-/// `DEEPMORPH_INJECT_NONFINITE` makes the solver meet a NaN after that sweep (the non-finite
-/// path end to end: outputs written, exit status 3); `DEEPMORPH_INTERRUPT_AT` raises the
-/// interrupt flag after that joint sweep, as a signal would (`--resume` end to end).
-fn level_and_sweep(name: &str) -> Result<Option<(usize, usize)>> {
-    let Some(value) = std::env::var_os(name) else {
-        return Ok(None);
-    };
-    let value = value.to_string_lossy();
-    let parsed = value
-        .split_once(':')
-        .and_then(|(l, s)| Some((l.trim().parse().ok()?, s.trim().parse().ok()?)));
-    parsed
-        .map(Some)
-        .with_context(|| format!("{name}={value} is not LEVEL:SWEEP"))
-}
-
-/// Raises the interrupt flag after joint sweep `at` (level, sweep): see [`level_and_sweep`].
-struct InterruptAt {
-    at: Option<(usize, usize)>,
-    flag: Arc<AtomicBool>,
-}
-
-impl Observer for InterruptAt {
-    fn sweep(&mut self, e: &SweepEvent<'_>) {
-        if e.phase == Phase::Joint && self.at == Some((e.level, e.sweep)) {
-            self.flag.store(true, Ordering::SeqCst);
-        }
-    }
-}
-
-/// The files `deepmorph warp` writes.
-fn is_warp_output(name: &str) -> bool {
-    ["a.png", "b.png", "truth.flo"].contains(&name)
 }
 
 fn backend_or_default(backend: Option<Backend>) -> Backend {
@@ -342,21 +230,14 @@ fn warp(
     force: bool,
     backend: Option<Backend>,
 ) -> Result<i32> {
-    let input = RgbImage::load(image)?;
     let device = backend_or_default(backend).device_for(Precision::F32)?;
-    let (warped, truth) = warped_pair(&input, field, amount, &device)?;
-    let folder = OutputFolder::begin(out, &[image], is_warp_output, force)?;
-    let staging = folder.path();
-    write_png(&staging.join("a.png"), &warped.to_rgb8())?;
-    write_png(&staging.join("b.png"), &input.to_rgb8())?;
-    truth.write_flo(&staging.join("truth.flo"))?;
-    let out = folder.commit()?;
+    let pair = write_warped_pair(image, field, amount, out, force, &device)?;
     eprintln!(
         "wrote a.png ({field} {amount} applied to {}), b.png and truth.flo ({}x{}) to {}",
         image.display(),
-        input.width(),
-        input.height(),
-        out.display()
+        pair.size.0,
+        pair.size.1,
+        pair.folder.display()
     );
     Ok(0)
 }

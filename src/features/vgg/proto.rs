@@ -148,11 +148,11 @@ impl Initializer<'_> {
                 .collect(),
             (10, Some(raw)) => raw
                 .chunks_exact(2)
-                .map(|c| half_to_f32(u16::from_le_bytes([c[0], c[1]])))
+                .map(|c| half::f16::from_le_bytes([c[0], c[1]]).to_f32())
                 .collect(),
             (16, Some(raw)) => raw
                 .chunks_exact(2)
-                .map(|c| f32::from_bits(u32::from(u16::from_le_bytes([c[0], c[1]])) << 16))
+                .map(|c| half::bf16::from_le_bytes([c[0], c[1]]).to_f32())
                 .collect(),
             (t, _) => {
                 return Err(format!(
@@ -171,19 +171,6 @@ impl Initializer<'_> {
             ));
         }
         Ok(values)
-    }
-}
-
-/// IEEE half precision to `f32`.
-fn half_to_f32(h: u16) -> f32 {
-    let sign = if h & 0x8000 != 0 { -1.0 } else { 1.0 };
-    let exp = i32::from((h >> 10) & 0x1f);
-    let frac = f32::from(h & 0x3ff);
-    sign * match exp {
-        0 => frac * 2f32.powi(-24),
-        31 if frac == 0.0 => f32::INFINITY,
-        31 => f32::NAN,
-        e => (1.0 + frac / 1024.0) * 2f32.powi(e - 15),
     }
 }
 
@@ -284,11 +271,26 @@ pub(crate) mod tests {
     use super::*;
 
     #[test]
-    fn half_precision_values() {
-        assert_eq!(half_to_f32(0x3c00), 1.0);
-        assert_eq!(half_to_f32(0xc000), -2.0);
-        assert_eq!(half_to_f32(0x3555), 0.333_251_95);
-        assert_eq!(half_to_f32(0x0001), 2f32.powi(-24));
+    fn half_precision_raw_data_is_read() {
+        let values = |data_type: i32, bits: &[u16]| {
+            let raw: Vec<u8> = bits.iter().flat_map(|b| b.to_le_bytes()).collect();
+            Initializer {
+                name: "w".into(),
+                dims: vec![bits.len()],
+                data_type,
+                raw: Some(&raw),
+                ..Initializer::default()
+            }
+            .values()
+            .unwrap()
+        };
+        // float16: 1, −2, the nearest to 1/3, the smallest subnormal.
+        assert_eq!(
+            values(10, &[0x3c00, 0xc000, 0x3555, 0x0001]),
+            [1.0, -2.0, 0.333_251_95, 2f32.powi(-24)]
+        );
+        // bfloat16: the upper half of a float32.
+        assert_eq!(values(16, &[0x3f80, 0xc040]), [1.0, -3.0]);
     }
 
     #[test]

@@ -6,7 +6,7 @@
 //! exponential (flex's elementwise ops run one at a time on the calling thread; its `exp` is
 //! libm's, one value at a time). A profile of a 256² RGB sweep had those at about a sixth of
 //! the anisotropy's samples. Fused, it is one pass split over the cores, its exponential
-//! eight lanes at a time ([`crate::model::elementary`]).
+//! eight lanes at a time ([`crate::model::cpu::elementary`]).
 //!
 //! - flex: the host kernel below.
 //! - autodiff: a constant. The anisotropy is a fixed weight of every derivative the model
@@ -17,7 +17,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::Tensor;
 
-use crate::model::warp::host::Real;
+use crate::model::cpu::Real;
 
 /// The weight's primitive (flex only: the other backends compose it).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
@@ -113,8 +113,8 @@ mod flex {
     use burn::tensor::{DType, TensorData};
 
     use super::{AnisotropyOps, host_edge_weight};
+    use crate::model::cpu::Real;
     use crate::model::host_view::HostView;
-    use crate::model::warp::host::Real;
 
     fn weight_typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
         d0: &HostView,
@@ -190,7 +190,7 @@ mod tests {
     }
 
     /// The weight one pixel at a time, in the composed order.
-    fn reference<T: crate::model::warp::host::Real>(
+    fn reference<T: crate::model::cpu::Real>(
         d0: &[T],
         d1: &[T],
         [n, c, plane]: [usize; 3],

@@ -22,7 +22,7 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
 use burn::tensor::Tensor;
 
-use crate::model::warp::host::{Real, Shared, has_avx2, simd_dispatch};
+use crate::model::cpu::{Real, Shared, simd_dispatch};
 
 /// The density's primitives (flex only: the other backends compose it).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
@@ -437,8 +437,8 @@ mod flex {
     use burn::tensor::{DType, TensorData};
 
     use super::{DensityOps, host_density, host_density_grad, host_min_det};
+    use crate::model::cpu::Real;
     use crate::model::host_view::HostView;
-    use crate::model::warp::host::Real;
 
     trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
     impl Kernel for f32 {}

@@ -91,9 +91,9 @@ mod flex {
     use rayon::prelude::*;
 
     use super::DistanceOps;
+    use crate::model::cpu::Real;
     use crate::model::decision::flex::{Term, Value, reduce};
     use crate::model::host_view::HostView;
-    use crate::model::warp::host::Real;
 
     /// Values per task of the gradient kernel.
     const CHUNK: usize = 1 << 14;

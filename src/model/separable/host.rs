@@ -10,7 +10,7 @@
 
 use rayon::prelude::*;
 
-use crate::model::warp::host::{Real, channels_last_into, has_avx2, simd_dispatch};
+use crate::model::cpu::{Real, channels_last_into, simd_dispatch};
 
 /// Output values per task: enough that a task outweighs rayon's overhead.
 const VALUES_PER_TASK: usize = 4096;

@@ -61,8 +61,8 @@ mod flex {
 
     use super::super::host::{self, Band};
     use super::SeparableOps;
+    use crate::model::cpu::Real;
     use crate::model::host_view::HostView;
-    use crate::model::warp::host::Real;
 
     fn apply_typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
         x: HostView,

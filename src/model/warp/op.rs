@@ -113,7 +113,7 @@ pub(super) mod flex {
     use burn::backend::flex::FlexTensor;
     use burn::tensor::{DType, TensorData};
 
-    use super::super::host::{self, Dims, Real};
+    use super::super::host::{self, Dims, SplineReal};
     use super::{SplineOps, dims};
     use crate::model::host_view::HostView;
 
@@ -138,7 +138,7 @@ pub(super) mod flex {
         };
     }
 
-    fn prefilter_typed<T: Real + burn::tensor::Element>(
+    fn prefilter_typed<T: SplineReal + burn::tensor::Element>(
         mut x: TensorData,
         transpose: bool,
     ) -> TensorData {
@@ -164,7 +164,7 @@ pub(super) mod flex {
     }
 
     /// The element types the kernels take: read in place from flex buffers.
-    trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
+    trait Kernel: SplineReal + burn::tensor::Element + bytemuck::Pod {}
     impl Kernel for f32 {}
     impl Kernel for f64 {}
 

@@ -349,20 +349,33 @@ impl Rng {
     }
 }
 
-/// The stand-in VGG19 of the team's shared data (`../shared/data/vgg19`), or `None` with the
-/// reason printed: a user's fresh clone has no `../shared`.
-pub fn stand_in_vgg19() -> Option<PathBuf> {
+/// A file of the team's shared test data (`../shared/data/RELATIVE`), or `None` with the
+/// reason printed: a user's fresh clone has no `../shared`. CI sets
+/// `DEEPMORPH_REQUIRE_SHARED_DATA=1`, which turns a missing file into a failure, so that a
+/// test that needs the data can never pass there without checking anything.
+pub fn shared_data(relative: &str) -> Option<PathBuf> {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-        .join("../shared/data/vgg19/vgg19_hed_stand_in.onnx");
-    if path.exists() {
-        Some(path)
-    } else {
-        eprintln!(
-            "skipped: {} not found (the team's shared test data)",
-            path.display()
-        );
-        None
+        .join("../shared/data")
+        .join(relative);
+    if path.is_file() {
+        return Some(path);
     }
+    assert!(
+        std::env::var_os("DEEPMORPH_REQUIRE_SHARED_DATA").is_none(),
+        "DEEPMORPH_REQUIRE_SHARED_DATA is set, but {} is not a file",
+        path.display()
+    );
+    eprintln!(
+        "skipped: {} not found (the team's shared test data)",
+        path.display()
+    );
+    None
+}
+
+/// The stand-in VGG19 of the team's shared data (`../shared/data/vgg19`), or `None` as
+/// [`shared_data`] says.
+pub fn stand_in_vgg19() -> Option<PathBuf> {
+    shared_data("vgg19/vgg19_hed_stand_in.onnx")
 }
 
 /// Deterministic uniform numbers in `[−1, 1)` (xorshift), for known test weights.

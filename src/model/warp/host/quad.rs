@@ -6,9 +6,9 @@
 //! sum (the 3-channel evaluation was a third of an RGB sweep at 256²). From a quad table a row
 //! of the stencil is 16 contiguous values, all channels of its four columns: two AVX registers
 //! per row, the sums down the rows for every channel at once, and one fold across columns
-//! at the end ([`Real::quad_block`]). Building the table is one pass over the coefficients
+//! at the end ([`SplineReal::quad_block`]). Building the table is one pass over the coefficients
 //! per call. The adjoint adds every channel of a point at once into private quad tables
-//! ([`Real::quad_scatter`]), where the planar scatter set each point up once per channel.
+//! ([`SplineReal::quad_scatter`]), where the planar scatter set each point up once per channel.
 //! The position gradient stays planar: an RGB sweep takes its deformation gradients from
 //! the image's slopes, not from this op.
 //!
@@ -21,8 +21,8 @@ use std::ops::Range;
 use rayon::prelude::*;
 
 use super::{
-    Axis, AxisLanes, Dims, LANES, PIXELS_PER_TASK, Real, Shared, contiguous, deformation_planes,
-    has_avx2, simd_dispatch, stencil as stencil_offsets,
+    Axis, AxisLanes, Dims, LANES, PIXELS_PER_TASK, Shared, SplineReal, contiguous,
+    deformation_planes, simd_dispatch, stencil as stencil_offsets,
 };
 
 /// Channels per pixel of a quad table.
@@ -36,7 +36,7 @@ pub(super) fn reads_quads(c: usize) -> bool {
 
 /// The planar coefficients `[N, C, H, W]` (`C ≤ 4`) as quad tables `[N, H, W, 4]`, the
 /// channels from `C` on zero.
-fn table<T: Real>(planar: &[T], d: &Dims) -> Vec<T> {
+fn table<T: SplineReal>(planar: &[T], d: &Dims) -> Vec<T> {
     let plane = d.h * d.w;
     let mut table = Vec::with_capacity(d.n * plane * QUAD);
     let tasks = plane.div_ceil(PIXELS_PER_TASK);
@@ -65,7 +65,7 @@ fn table<T: Real>(planar: &[T], d: &Dims) -> Vec<T> {
 /// stencil whose four columns `j0 …` are contiguous. Down the rows in order, then across
 /// the columns as two independent pairs: the planar kernel's `sum4(wc, down_rows(…, wr))`.
 #[inline(always)]
-fn stencil<T: Real>(
+fn stencil<T: SplineReal>(
     table: &[T],
     rows: &[usize; 4],
     j0: usize,
@@ -153,7 +153,7 @@ pub(super) unsafe fn block_avx(
 /// `Σ_b weight[b] · line[index[b]·4 + ch]` per channel, as two independent pairs: a row of a
 /// stencil whose columns the mirror folded (the planar kernel's `dot4`).
 #[inline(always)]
-fn folded_row<T: Real>(line: &[T], index: &[usize; 4], weight: &[T; 4]) -> [T; QUAD] {
+fn folded_row<T: SplineReal>(line: &[T], index: &[usize; 4], weight: &[T; 4]) -> [T; QUAD] {
     let at = |k: usize| -> &[T; QUAD] {
         line[index[k] * QUAD..index[k] * QUAD + QUAD]
             .try_into()
@@ -182,7 +182,7 @@ fn for_each_task(d: &Dims, kernel: impl Fn(usize, Range<usize>) + Sync) {
 }
 
 /// [`super::sample`] for 3 or 4 channels: writes every value of `out`.
-pub(super) fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [MaybeUninit<T>], d: Dims) {
+pub(super) fn sample<T: SplineReal>(coeffs: &[T], phi: &[T], out: &mut [MaybeUninit<T>], d: Dims) {
     let table = table(coeffs, &d);
     let out = Shared(out.as_mut_ptr().cast::<T>());
     for_each_task(&d, |b, points| {
@@ -191,9 +191,9 @@ pub(super) fn sample<T: Real>(coeffs: &[T], phi: &[T], out: &mut [MaybeUninit<T>
 }
 
 /// [`sample`] at the points `points` of image `b`, a block of [`LANES`] points at a time:
-/// [`Real::quad_block`] first, then the generic sums for the lanes it left.
+/// [`SplineReal::quad_block`] first, then the generic sums for the lanes it left.
 #[inline(always)]
-fn sample_at<T: Real>(
+fn sample_at<T: SplineReal>(
     table: &[T],
     phi: &[T],
     out: Shared<T>,
@@ -233,7 +233,7 @@ fn sample_at<T: Real>(
 /// The stencil of one point by the generic sums: [`stencil`] where its columns are
 /// contiguous, else row by row through the mirror's indices.
 #[inline(always)]
-fn generic_lane<T: Real>(table: &[T], w: usize, rows: &Axis<T>, cols: &Axis<T>) -> [T; QUAD] {
+fn generic_lane<T: SplineReal>(table: &[T], w: usize, rows: &Axis<T>, cols: &Axis<T>) -> [T; QUAD] {
     let (wr, wc) = (&rows.weight, &cols.weight);
     if let Some((ro, j0)) = contiguous(rows, cols, w) {
         return stencil(table, &ro, j0, wr, wc);
@@ -247,7 +247,7 @@ fn generic_lane<T: Real>(table: &[T], w: usize, rows: &Axis<T>, cols: &Axis<T>) 
     s
 }
 
-simd_dispatch!(fn sample_at_simd<T: Real>(
+simd_dispatch!(fn sample_at_simd<T: SplineReal>(
     table: &[T], phi: &[T], out: Shared<T>, d: Dims, b: usize, points: Range<usize>
 ) => sample_at);
 
@@ -257,7 +257,7 @@ simd_dispatch!(fn sample_at_simd<T: Real>(
 /// the planar `out`. The planar scatter ran one channel per task, so each point's setup was
 /// computed once per channel; here once. Same sums in the same order as the planar path
 /// (its parts split the points the same way), so the same bits.
-pub(super) fn adjoint<T: Real>(
+pub(super) fn adjoint<T: SplineReal>(
     grad: &[T],
     phi: &[T],
     out: &mut [MaybeUninit<T>],
@@ -295,10 +295,10 @@ pub(super) fn adjoint<T: Real>(
 }
 
 /// Adds `B(φ)ᵀ g` of the points `points` of image `b` into the quad `table`, a block of
-/// [`LANES`] points at a time: [`Real::quad_scatter`] as far as it goes, the generic sums for
+/// [`LANES`] points at a time: [`SplineReal::quad_scatter`] as far as it goes, the generic sums for
 /// a lane it stops at, in point order (the order of the adds into shared coefficients).
 #[inline(always)]
-fn scatter<T: Real>(
+fn scatter<T: SplineReal>(
     grad: &[T],
     phi: &[T],
     table: &mut [T],
@@ -336,7 +336,7 @@ fn scatter<T: Real>(
     }
 }
 
-simd_dispatch!(fn scatter_simd<T: Real>(
+simd_dispatch!(fn scatter_simd<T: SplineReal>(
     grad: &[T], phi: &[T], table: &mut [T], d: Dims, b: usize, points: Range<usize>
 ) => scatter);
 
@@ -344,7 +344,7 @@ simd_dispatch!(fn scatter_simd<T: Real>(
 /// per channel (`(wr·v)·wc` down four contiguous columns, else `(wr·wc)·v` through the
 /// mirror's indices).
 #[inline(always)]
-fn scatter_lane<T: Real>(
+fn scatter_lane<T: SplineReal>(
     table: &mut [T],
     w: usize,
     rows: &Axis<T>,
@@ -435,7 +435,7 @@ mod tests {
         adjoint_check::<f64>(f64::to_bits);
     }
 
-    fn adjoint_check<T: Real + std::fmt::Debug>(bits: fn(T) -> u64) {
+    fn adjoint_check<T: SplineReal + std::fmt::Debug>(bits: fn(T) -> u64) {
         let (d, phi) = dims_and_points::<T>(3);
         let grad = ramp::<T>(d.n * d.c * d.points(), 1.1);
         let plane = d.h * d.w;
@@ -465,7 +465,7 @@ mod tests {
         }
     }
 
-    fn ramp<T: Real>(n: usize, seed: f64) -> Vec<T> {
+    fn ramp<T: SplineReal>(n: usize, seed: f64) -> Vec<T> {
         (0..n)
             .map(|i| T::from_f64((i as f64 * 0.37 + seed).sin() + 0.1 * i as f64 % 3.0))
             .collect()
@@ -473,7 +473,7 @@ mod tests {
 
     /// Two images of `c` channels, 23 × 29 coefficients sampled at 41 × 37 points inside,
     /// outside and on the edges of the clamp range.
-    fn dims_and_points<T: Real>(c: usize) -> (Dims, Vec<T>) {
+    fn dims_and_points<T: SplineReal>(c: usize) -> (Dims, Vec<T>) {
         let d = Dims {
             n: 2,
             c,
@@ -502,7 +502,7 @@ mod tests {
         check::<f64>(f64::to_bits);
     }
 
-    fn check<T: Real + std::fmt::Debug>(bits: fn(T) -> u64) {
+    fn check<T: SplineReal + std::fmt::Debug>(bits: fn(T) -> u64) {
         for c in [3, 4] {
             let (d, phi) = dims_and_points::<T>(c);
             let coeffs = ramp::<T>(d.n * c * d.h * d.w, 0.3);

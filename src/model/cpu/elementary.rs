@@ -16,7 +16,7 @@
 //! stays NaN, which is what lets a non-finite deformation surface as a NaN energy.
 
 #[cfg(target_arch = "x86_64")]
-use crate::model::warp::host::has_avx2;
+use super::has_avx2;
 
 /// `ln 2` split so that `n · LN2_HI` is exact for `|n| < 2¹¹` (Cody and Waite).
 const LN2_HI: f64 = f64::from_bits(0x3FE6_2E42_FEE0_0000);

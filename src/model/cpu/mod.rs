@@ -1,0 +1,372 @@
+//! What the native CPU kernels of the custom ops share, and nothing else: the element
+//! types they run in ([`Real`]), the AVX2 dispatch of their hot loops ([`has_avx2`],
+//! [`simd_dispatch`]), a pointer that tasks writing disjoint indices share ([`Shared`]),
+//! and vectorisable `ln`/`exp` ([`elementary`]). The kernels themselves live beside their
+//! ops (`warp/host`, `separable/host`, the `*_op.rs` files); they import from here, never
+//! from each other.
+
+use std::ops::{Add, AddAssign, Div, Mul, Sub};
+
+use rayon::prelude::*;
+
+pub(crate) mod elementary;
+
+/// The element types the kernels run in.
+pub trait Real:
+    Copy
+    + Default
+    + Send
+    + Sync
+    + 'static
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Mul<Output = Self>
+    + Div<Output = Self>
+    + AddAssign
+    + PartialOrd
+{
+    /// From float64 (rounded for float32).
+    fn from_f64(v: f64) -> Self;
+    /// To float64 (exact).
+    fn to_f64(self) -> f64;
+    /// Rounded towards zero to an integer where that is in `[0, 2³⁰]`, else 0 (NaN
+    /// included): the floor of a clamped grid coordinate. Not `as i32`: its saturation and
+    /// NaN rule kept the points' setup scalar (one conversion and two compares per lane),
+    /// where a select and an unchecked conversion vectorise.
+    fn truncate(self) -> i32;
+    /// From an integer (exact for the grid's indices).
+    fn from_i32(i: i32) -> Self;
+    /// `eˣ`.
+    fn exp(self) -> Self;
+    /// The natural logarithm.
+    fn ln(self) -> Self;
+    /// [`ln`](Self::ln) of eight values: libm's, one at a time, unless the type has a
+    /// vectorisable one ([`super::elementary`] for float32).
+    #[inline(always)]
+    fn ln8(x: [Self; 8]) -> [Self; 8] {
+        x.map(Self::ln)
+    }
+    /// [`exp`](Self::exp) of eight values, as [`ln8`](Self::ln8).
+    #[inline(always)]
+    fn exp8(x: [Self; 8]) -> [Self; 8] {
+        x.map(Self::exp)
+    }
+    /// Writes the 8 × 8 block at `src` (rows `src_stride` values apart) transposed to `dst`
+    /// (rows `dst_stride` apart): `dst[j·dst_stride + i] = src[i·src_stride + j]`.
+    ///
+    /// # Safety
+    ///
+    /// `src` and `dst` are valid for their 8 rows of 8 values and do not overlap.
+    #[inline(always)]
+    unsafe fn transpose8(src: *const Self, src_stride: usize, dst: *mut Self, dst_stride: usize) {
+        // SAFETY: the caller's promise.
+        unsafe { transpose8_scalar(src, src_stride, dst, dst_stride) }
+    }
+}
+
+/// The largest value [`Real::truncate`] converts (`2³⁰`, exact in both precisions).
+const GRID_INDEX_MAX: f64 = (1u32 << 30) as f64;
+
+/// [`Real::transpose8`] one value at a time.
+///
+/// # Safety
+///
+/// As [`Real::transpose8`].
+#[inline(always)]
+unsafe fn transpose8_scalar<T: Copy>(
+    src: *const T,
+    src_stride: usize,
+    dst: *mut T,
+    dst_stride: usize,
+) {
+    for i in 0..8 {
+        for j in 0..8 {
+            // SAFETY: the caller's promise.
+            unsafe { *dst.add(j * dst_stride + i) = *src.add(i * src_stride + j) };
+        }
+    }
+}
+
+impl Real for f32 {
+    fn from_f64(v: f64) -> Self {
+        v as f32
+    }
+    fn to_f64(self) -> f64 {
+        f64::from(self)
+    }
+    #[inline(always)]
+    fn truncate(self) -> i32 {
+        let q = if (0.0..=GRID_INDEX_MAX as f32).contains(&self) {
+            self
+        } else {
+            0.0
+        };
+        // SAFETY: `q` is finite and in `[0, 2³⁰]`, so its truncation is an `i32`.
+        unsafe { q.to_int_unchecked() }
+    }
+    fn from_i32(i: i32) -> Self {
+        i as f32
+    }
+    fn exp(self) -> Self {
+        f32::exp(self)
+    }
+    fn ln(self) -> Self {
+        f32::ln(self)
+    }
+    #[inline(always)]
+    fn ln8(x: [Self; 8]) -> [Self; 8] {
+        elementary::ln8(x)
+    }
+    #[inline(always)]
+    fn exp8(x: [Self; 8]) -> [Self; 8] {
+        elementary::exp8(x)
+    }
+    #[inline(always)]
+    unsafe fn transpose8(src: *const Self, src_stride: usize, dst: *mut Self, dst_stride: usize) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2; the pointers are the caller's promise.
+            return unsafe { transpose8_avx(src, src_stride, dst, dst_stride) };
+        }
+        // SAFETY: the caller's promise.
+        unsafe { transpose8_scalar(src, src_stride, dst, dst_stride) }
+    }
+}
+
+/// [`Real::transpose8`] of float32 in eight registers: interleave pairs of rows, then pairs
+/// of pairs, then swap 128-bit halves (the compiler made the generic loop 64 scalar moves).
+///
+/// # Safety
+///
+/// The CPU has AVX; the pointers as [`Real::transpose8`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+unsafe fn transpose8_avx(src: *const f32, src_stride: usize, dst: *mut f32, dst_stride: usize) {
+    use std::arch::x86_64::*;
+    // SAFETY (every load and store): the caller's promise; unaligned accesses.
+    let r: [__m256; 8] =
+        std::array::from_fn(|i| unsafe { _mm256_loadu_ps(src.add(i * src_stride)) });
+    let t = [
+        _mm256_unpacklo_ps(r[0], r[1]),
+        _mm256_unpackhi_ps(r[0], r[1]),
+        _mm256_unpacklo_ps(r[2], r[3]),
+        _mm256_unpackhi_ps(r[2], r[3]),
+        _mm256_unpacklo_ps(r[4], r[5]),
+        _mm256_unpackhi_ps(r[4], r[5]),
+        _mm256_unpacklo_ps(r[6], r[7]),
+        _mm256_unpackhi_ps(r[6], r[7]),
+    ];
+    let u = [
+        _mm256_shuffle_ps::<0x44>(t[0], t[2]),
+        _mm256_shuffle_ps::<0xEE>(t[0], t[2]),
+        _mm256_shuffle_ps::<0x44>(t[1], t[3]),
+        _mm256_shuffle_ps::<0xEE>(t[1], t[3]),
+        _mm256_shuffle_ps::<0x44>(t[4], t[6]),
+        _mm256_shuffle_ps::<0xEE>(t[4], t[6]),
+        _mm256_shuffle_ps::<0x44>(t[5], t[7]),
+        _mm256_shuffle_ps::<0xEE>(t[5], t[7]),
+    ];
+    for j in 0..4 {
+        // SAFETY: the caller's promise; unaligned stores.
+        unsafe {
+            _mm256_storeu_ps(
+                dst.add(j * dst_stride),
+                _mm256_permute2f128_ps::<0x20>(u[j], u[j + 4]),
+            );
+            _mm256_storeu_ps(
+                dst.add((j + 4) * dst_stride),
+                _mm256_permute2f128_ps::<0x31>(u[j], u[j + 4]),
+            );
+        }
+    }
+}
+
+impl Real for f64 {
+    fn from_f64(v: f64) -> Self {
+        v
+    }
+    fn to_f64(self) -> f64 {
+        self
+    }
+    #[inline(always)]
+    fn truncate(self) -> i32 {
+        let q = if (0.0..=GRID_INDEX_MAX).contains(&self) {
+            self
+        } else {
+            0.0
+        };
+        // SAFETY: `q` is finite and in `[0, 2³⁰]`, so its truncation is an `i32`.
+        unsafe { q.to_int_unchecked() }
+    }
+    fn from_i32(i: i32) -> Self {
+        f64::from(i)
+    }
+    fn exp(self) -> Self {
+        f64::exp(self)
+    }
+    fn ln(self) -> Self {
+        f64::ln(self)
+    }
+}
+
+/// Whether the CPU has AVX2: the crate is built for baseline x86-64 (SSE2), so the hot loops
+/// also exist compiled for AVX2 ([`simd_dispatch`]) and run that copy where the CPU has it:
+/// twice the lanes for the same source.
+#[inline]
+pub(crate) fn has_avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// `fn $name<T: Bound>(args)` (any bound that implies [`Real`]) calling the `#[inline(always)]` function `$body` with the same
+/// arguments, compiled for AVX2 where the CPU has it ([`has_avx2`]) and for the baseline
+/// otherwise. Both copies are the same source, so they compute the same values (no fused
+/// multiply-adds are introduced: Rust does not contract `a * b + c`).
+macro_rules! simd_dispatch {
+    ($vis:vis fn $name:ident<$t:ident: $bound:path>($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
+        $vis fn $name<$t: $bound>($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                fn wide<$t: $bound>($($arg: $ty),*) {
+                    $body($($arg),*)
+                }
+                if $crate::model::cpu::has_avx2() {
+                    // SAFETY: the CPU has AVX2, checked just now.
+                    return unsafe { wide($($arg),*) };
+                }
+            }
+            $body($($arg),*)
+        }
+    };
+    // The same for an `unsafe fn` body: the copy has the body's safety contract.
+    ($(#[$doc:meta])* $vis:vis unsafe fn $name:ident<$t:ident: $bound:path>($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
+        $(#[$doc])*
+        $vis unsafe fn $name<$t: $bound>($($arg: $ty),*) {
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2")]
+                unsafe fn wide<$t: $bound>($($arg: $ty),*) {
+                    // SAFETY: the caller's promise, passed on.
+                    unsafe { $body($($arg),*) }
+                }
+                if $crate::model::cpu::has_avx2() {
+                    // SAFETY: the CPU has AVX2, checked just now; the rest is the caller's
+                    // promise.
+                    return unsafe { wide($($arg),*) };
+                }
+            }
+            // SAFETY: the caller's promise, passed on.
+            unsafe { $body($($arg),*) }
+        }
+    };
+}
+pub(crate) use simd_dispatch;
+
+/// A raw pointer that tasks writing disjoint indices of one buffer may share.
+#[derive(Clone, Copy)]
+pub(crate) struct Shared<T>(pub(crate) *mut T);
+// SAFETY: every user writes only indices no other task touches (stated at each use).
+unsafe impl<T: Send> Send for Shared<T> {}
+// SAFETY: as for `Send`: shared use is writes to disjoint indices only.
+unsafe impl<T: Send> Sync for Shared<T> {}
+
+impl<T> Shared<T> {
+    /// # Safety
+    ///
+    /// `i` is in bounds and no other thread reads or writes it meanwhile.
+    pub(crate) unsafe fn write(self, i: usize, v: T) {
+        // SAFETY: the caller's promise: `i` in bounds and this thread's alone.
+        unsafe { self.0.add(i).write(v) }
+    }
+
+    /// # Safety
+    ///
+    /// As [`write`](Self::write).
+    pub(crate) unsafe fn get(self, i: usize) -> *mut T {
+        // SAFETY: the caller's promise: `i` in bounds.
+        unsafe { self.0.add(i) }
+    }
+}
+
+/// Pixels per task: large enough that a task outweighs rayon's overhead, small enough that
+/// both cores (or sixteen) get an even share at 64².
+pub(crate) const PIXELS_PER_TASK: usize = 1024;
+
+/// One image's `C` planes of `plane` values, channels-last, into `out` (same length):
+/// `out[p·C + c] = planar[c·plane + p]`. Also the transpose of a `c × plane` matrix
+/// (the separable operators' transposes of whole planes).
+pub(crate) fn channels_last_into<T: Real>(planar: &[T], c: usize, plane: usize, out: &mut [T]) {
+    assert!(
+        planar.len() == c * plane && out.len() == planar.len(),
+        "channels-last: {} values for {c} planes of {plane}, into {}",
+        planar.len(),
+        out.len()
+    );
+    let target = Shared(out.as_mut_ptr());
+    (0..plane.div_ceil(PIXELS_PER_TASK))
+        .into_par_iter()
+        .for_each(|chunk| {
+            let pixels = chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(plane);
+            // SAFETY: the chunk's pixels' rows of `out` are this task's alone.
+            unsafe { transpose_pixels_simd(planar, c, plane, target, pixels) };
+        });
+}
+
+/// Writes `out[i·c + ch] = planar[ch·plane + i]` for the pixels `i` of `pixels`: blocks of
+/// 8 pixels × 8 channels through [`Real::transpose8`] (one value at a time, the stores a
+/// stride of `c` apart made the separable operators' transposes a tenth of an RGB sweep),
+/// the edges one value at a time.
+///
+/// # Safety
+///
+/// `out` is valid for `plane · c` values, and the rows of `pixels` are the caller's alone.
+#[inline(always)]
+pub(crate) unsafe fn transpose_pixels<T: Real>(
+    planar: &[T],
+    c: usize,
+    plane: usize,
+    out: Shared<T>,
+    pixels: std::ops::Range<usize>,
+) {
+    const B: usize = 8;
+    let whole_pixels = pixels.start + (pixels.len() - pixels.len() % B);
+    let whole_channels = c - c % B;
+    for i0 in (pixels.start..whole_pixels).step_by(B) {
+        for ch0 in (0..whole_channels).step_by(B) {
+            let src = &planar[ch0 * plane + i0..(ch0 + B - 1) * plane + i0 + B];
+            // SAFETY: `src` holds the 8 rows of 8 from its start, `plane` apart; the 8 rows of
+            // 8 at `out[i0·c + ch0]`, `c` apart, are in `out` and the caller's alone.
+            unsafe { T::transpose8(src.as_ptr(), plane, out.get(i0 * c + ch0), c) };
+        }
+        for ch in whole_channels..c {
+            for i in i0..i0 + B {
+                // SAFETY: as above.
+                unsafe { out.write(i * c + ch, planar[ch * plane + i]) };
+            }
+        }
+    }
+    for i in whole_pixels..pixels.end {
+        for ch in 0..c {
+            // SAFETY: as above.
+            unsafe { out.write(i * c + ch, planar[ch * plane + i]) };
+        }
+    }
+}
+
+simd_dispatch!(
+    /// [`transpose_pixels`], compiled for AVX2 where the CPU has it.
+    ///
+    /// # Safety
+    ///
+    /// As [`transpose_pixels`].
+    unsafe fn transpose_pixels_simd<T: Real>(
+        planar: &[T], c: usize, plane: usize, out: Shared<T>, pixels: std::ops::Range<usize>
+    ) => transpose_pixels
+);
