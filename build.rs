@@ -3,7 +3,7 @@
 //! `onnx/vgg19_graph.rs` writes the ONNX graph (architecture with zero weights: the
 //! repository does not ship 80 MB of weights; the real ones are loaded at run time from the
 //! user's `--vgg19` file) into `OUT_DIR`, and burn-import's `ModelGen` turns it into
-//! `OUT_DIR/model/vgg19.rs`, which `src/vgg/model.rs` includes untouched.
+//! `OUT_DIR/model/vgg19.rs`, which `src/features/vgg/model.rs` includes untouched.
 #![allow(deprecated)] // burn-import 0.22 is the deprecated wrapper of burn-onnx; it is the design card's tool.
 
 #[path = "src/features/vgg/architecture.rs"]

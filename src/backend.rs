@@ -1,7 +1,8 @@
-//! Backend and device selection: the only place in the crate that knows which Burn backends
-//! were compiled in (cargo features `flex`, `ndarray`, `wgpu`).
+//! Backend and device selection: which Burn backends were compiled in (cargo features
+//! `flex`, `ndarray`, `wgpu`) and how a choice of one becomes a device.
 //!
-//! The numerical code never names a backend. Burn 0.22 tensors are backend-erased
+//! The numerical code names no backend, except the custom ops' kernel files, which hold a
+//! kernel per backend (listed in `docs/architecture.md`, "Custom ops"). Burn 0.22 tensors are backend-erased
 //! (`Tensor<D>`); the backend is a property of the [`Device`] they live on, and this module
 //! is what turns a [`Backend`] choice into such a device.
 #![allow(deprecated)] // `Device::ndarray` is deprecated upstream in favour of flex.

@@ -18,7 +18,7 @@
 //!
 //! - [`error`]: the library's error type.
 //! - [`read`]: reading untrusted files within a size limit.
-//! - [`backend`]: the only module that knows which backends were compiled in; turns a
+//! - [`backend`]: which backends were compiled in (beside the custom ops' kernels); turns a
 //!   choice into a device and tells the numerics what the device can do.
 //! - [`model`]: the discrete model as differentiable tensor ops (SPEC §0–§5, §7).
 //! - [`solver`]: iPALM on a level and the multilevel driver (SPEC §6, §7).

@@ -72,27 +72,15 @@ fn to_yuv420(frame: &Rgb8) -> Yuv420 {
     }
 }
 
-/// The NAL units of an Annex B stream, without their start codes.
+/// The NAL units of an Annex B stream, without their start codes: openh264's splitter
+/// (each unit from its `00 00 01`), less that prefix and the zeros a following 4-byte start
+/// code leaves at the end of the unit before it.
 fn nal_units(stream: &[u8]) -> Vec<&[u8]> {
-    let mut starts = Vec::new();
-    let mut i = 0;
-    while i + 3 <= stream.len() {
-        if stream[i..i + 3] == [0, 0, 1] {
-            starts.push(i + 3);
-            i += 3;
-        } else {
-            i += 1;
-        }
-    }
-    starts
-        .iter()
-        .enumerate()
-        .map(|(n, &s)| {
-            let end = starts.get(n + 1).map_or(stream.len(), |&next| next - 3);
-            // A 4-byte start code leaves one zero at the end of the previous unit.
-            let unit = &stream[s..end];
-            let trailing = unit.iter().rev().take_while(|&&b| b == 0).count();
-            &unit[..unit.len() - trailing]
+    openh264::nal_units(stream)
+        .map(|unit| {
+            let payload = unit.strip_prefix(&[0, 0, 1][..]).unwrap_or(unit);
+            let trailing = payload.iter().rev().take_while(|&&b| b == 0).count();
+            &payload[..payload.len() - trailing]
         })
         .filter(|unit| !unit.is_empty())
         .collect()

@@ -1,12 +1,14 @@
 //! A minimal MP4 (ISO/IEC 14496-12 and -15) for one H.264 video track: the writer of
-//! `morph.mp4` and a reader of what it needs to check such a file (sizes, samples, timing,
-//! the decoder configuration).
+//! `morph.mp4`, and, for the tests only (feature `check`), a reader of what they need to
+//! check such a file (sizes, samples, timing, the decoder configuration): not part of the
+//! library's API.
 //!
 //! The layout is "fast start": `ftyp`, `moov` (every table), then `mdat` with the samples in
 //! order as one chunk, so a player can start before the whole file is read. Samples are in
 //! AVCC form (each NAL unit behind its 4-byte big-endian length); the sequence and picture
 //! parameter sets live in the `avcC` box, not in the samples.
 
+#[cfg(any(test, feature = "check"))]
 use std::ops::Range;
 
 /// One coded picture.
@@ -235,6 +237,7 @@ pub fn mux(track: &Track) -> Option<Vec<u8>> {
 }
 
 /// What [`inspect`] reads from an MP4 file's first video track.
+#[cfg(any(test, feature = "check"))]
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Summary {
     /// The sample entry's width and height.
@@ -256,9 +259,11 @@ pub struct Summary {
 }
 
 /// A box: type, body range (within the file).
+#[cfg(any(test, feature = "check"))]
 type Atom = ([u8; 4], Range<usize>);
 
 /// The boxes laid end to end in `range` of `bytes`.
+#[cfg(any(test, feature = "check"))]
 fn atoms(bytes: &[u8], range: Range<usize>) -> Result<Vec<Atom>, String> {
     let mut found = Vec::new();
     let mut at = range.start;
@@ -293,6 +298,7 @@ fn atoms(bytes: &[u8], range: Range<usize>) -> Result<Vec<Atom>, String> {
 }
 
 /// The body of the first box `kind` among the boxes in `range`.
+#[cfg(any(test, feature = "check"))]
 fn child(bytes: &[u8], range: Range<usize>, kind: &[u8; 4]) -> Result<Range<usize>, String> {
     atoms(bytes, range)?
         .into_iter()
@@ -302,8 +308,10 @@ fn child(bytes: &[u8], range: Range<usize>, kind: &[u8; 4]) -> Result<Range<usiz
 }
 
 /// Reads big-endian `u32`s (or `u16`s) at byte offsets of a box body.
+#[cfg(any(test, feature = "check"))]
 struct Reader<'a>(&'a [u8]);
 
+#[cfg(any(test, feature = "check"))]
 impl Reader<'_> {
     fn u32(&self, at: usize) -> Result<u32, String> {
         self.0
@@ -343,6 +351,7 @@ impl Reader<'_> {
 /// # Errors
 ///
 /// A message saying which box is missing or malformed.
+#[cfg(any(test, feature = "check"))]
 pub fn inspect(bytes: &[u8]) -> Result<Summary, String> {
     let moov = child(bytes, 0..bytes.len(), b"moov")?;
     let trak = atoms(bytes, moov)?

@@ -9,8 +9,8 @@
 //!   [`crate::model::grid::Accumulation`]).
 //! - autodiff: not differentiable; the inputs are detached by the caller.
 //!
-//! With [`crate::model::warp::op`], [`crate::model::separable::op`] and
-//! [`crate::model::slopes`], the only numerical code that names backends.
+//! The custom ops and the backends they have kernels for are listed in one place,
+//! `docs/architecture.md` ("Custom ops"): they are the only numerical code that names backends.
 
 #![allow(deprecated)] // `NdArray` is deprecated upstream in favour of flex; it stays served.
 

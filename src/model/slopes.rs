@@ -10,8 +10,8 @@
 //! Composed from tensor ops (`crate::solver::prox`, every backend) this is two separable
 //! operators and about twenty passes over `C` channels with `2C`-channel intermediates; on
 //! flex a host kernel does it per row block with the channels inner. Not differentiable:
-//! the linearisation is a constant of its step. With the spline's, separable operator's and
-//! decision sums' ops, the only numerical code that names backends.
+//! the linearisation is a constant of its step. The custom ops and the backends they have kernels for are listed in one place,
+//! `docs/architecture.md` ("Custom ops"): they are the only numerical code that names backends.
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};

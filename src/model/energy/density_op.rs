@@ -15,8 +15,8 @@
 //!   track it) it is `g · W(J(φ))`, the op itself with `g` as the weight.
 //! - ndarray and wgpu compose the density from tensor ops (not served here).
 //!
-//! With the spline's, separable operator's, decision sums' and slope moments' ops, the only
-//! numerical code that names backends.
+//! The custom ops and the backends they have kernels for are listed in one place,
+//! `docs/architecture.md` ("Custom ops"): they are the only numerical code that names backends.
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};

@@ -18,8 +18,8 @@
 //! - ndarray, wgpu: the trait's default bodies, the composed ops.
 //! - autodiff: `∂/∂a = 2g·(a − b)`, `∂/∂b = 2g·(b − a)` (the negation is exact).
 //!
-//! With the other custom ops (spline, separable operator, decision sums, slope moments,
-//! density), the only numerical code that names backends.
+//! The custom ops and the backends they have kernels for are listed in one place,
+//! `docs/architecture.md` ("Custom ops"): they are the only numerical code that names backends.
 
 #![allow(deprecated)] // `NdArray` is deprecated upstream in favour of flex; it stays served.
 

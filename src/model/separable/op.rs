@@ -7,8 +7,8 @@
 //! - autodiff: the backward is the adjoint `Rᵀ · g · C`, the same op on the transposed
 //!   matrices. The matrices are constants of the model and never take a gradient.
 //!
-//! The custom ops (this one, [`crate::model::warp::op`], [`crate::model::decision`] and
-//! [`crate::model::slopes`]) are the only numerical code that names backends.
+//! The custom ops and the backends they have kernels for are listed in one place,
+//! `docs/architecture.md` ("Custom ops"): they are the only numerical code that names backends.
 
 #![allow(deprecated)] // `NdArray` is deprecated upstream in favour of flex; it stays served.
 

@@ -12,9 +12,9 @@
 //!   zero outside the clamp range).
 //!
 //! ndarray is not served: it keeps the composed tensor ops ([`crate::backend::Gather`]).
-//! This module and `super::cube`, with the other custom ops (`crate::model::separable::op`,
-//! `crate::model::decision`, `crate::model::slopes`), are the only numerical code that names
-//! backends; they hold what is backend-specific by nature, a kernel per backend.
+//! This module and `super::cube` hold what is backend-specific by nature, a kernel per
+//! backend. The custom ops and the backends they have kernels for are listed in one place,
+//! `docs/architecture.md` ("Custom ops"): they are the only numerical code that names backends.
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
