@@ -516,7 +516,7 @@ mod tests {
         );
         assert!(p.morph.length > p.crossfade.length);
         // A path that stands still.
-        let still = PathStats::of(&[&views[0], &views[0]]);
+        let still = PathStats::of(&[views[0], views[0]]);
         assert_eq!((still.length, still.relative_std), (0.0, 0.0));
     }
 

@@ -260,33 +260,6 @@ pub(crate) mod flex {
         }
     }
 
-    #[cfg(test)]
-    mod tests {
-        use super::*;
-
-        /// The AVX2 copy adds the same terms in the same lanes as the baseline one: the
-        /// same bits, for every term, with a remainder after the groups of eight.
-        #[test]
-        fn the_vector_fold_is_the_scalar_one_bit_for_bit() {
-            let a: Vec<f32> = (0..1003)
-                .map(|i| ((i * 37) % 101) as f32 * 0.0131 - 0.6)
-                .collect();
-            let b: Vec<f32> = (0..1003)
-                .map(|i| ((i * 11) % 89) as f32 * 0.0217 + 0.1)
-                .collect();
-            for term in [Term::First, Term::Product, Term::SquaredDifference] {
-                let want = lanes(&a, &b, term);
-                assert_eq!(
-                    f32::fold(&a, &b, term).to_bits(),
-                    want.to_bits(),
-                    "{term:?}"
-                );
-                let exact: f64 = a.iter().zip(&b).map(|(&x, &y)| term_of(x, y, term)).sum();
-                assert!((want - exact).abs() <= 1e-12 * exact.abs(), "{term:?}");
-            }
-        }
-    }
-
     fn scalar(v: f64) -> FlexTensor {
         FlexTensor::from_data(TensorData::new(vec![v], [1]))
     }
@@ -312,6 +285,33 @@ pub(crate) mod flex {
             let (a, b) = (HostView::new(a), HostView::new(b));
             assert_eq!(a.dtype(), b.dtype(), "decision distance: dtypes differ");
             scalar(distance2(&a, &b))
+        }
+    }
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        /// The AVX2 copy adds the same terms in the same lanes as the baseline one: the
+        /// same bits, for every term, with a remainder after the groups of eight.
+        #[test]
+        fn the_vector_fold_is_the_scalar_one_bit_for_bit() {
+            let a: Vec<f32> = (0..1003)
+                .map(|i| ((i * 37) % 101) as f32 * 0.0131 - 0.6)
+                .collect();
+            let b: Vec<f32> = (0..1003)
+                .map(|i| ((i * 11) % 89) as f32 * 0.0217 + 0.1)
+                .collect();
+            for term in [Term::First, Term::Product, Term::SquaredDifference] {
+                let want = lanes(&a, &b, term);
+                assert_eq!(
+                    f32::fold(&a, &b, term).to_bits(),
+                    want.to_bits(),
+                    "{term:?}"
+                );
+                let exact: f64 = a.iter().zip(&b).map(|(&x, &y)| term_of(x, y, term)).sum();
+                assert!((want - exact).abs() <= 1e-12 * exact.abs(), "{term:?}");
+            }
         }
     }
 }

@@ -18,7 +18,7 @@ pub fn mirror_index(i: i64, n: usize) -> usize {
     assert!(n >= 2, "mirror_index needs n >= 2, got {n}");
     let period = 2 * (n as i64 - 1);
     let r = i.rem_euclid(period);
-    if r <= n as i64 - 1 {
+    if r < n as i64 {
         r as usize
     } else {
         (period - r) as usize

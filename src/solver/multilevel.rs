@@ -90,7 +90,10 @@ impl MultilevelConfig {
     /// If the size is not divisible by `2^(levels−1)` or the coarsest level is below 4 × 4.
     pub fn level_sizes(&self, height: usize, width: usize) -> Result<Vec<(usize, usize)>> {
         let factor = 1usize << (self.levels - 1);
-        if height % factor != 0 || width % factor != 0 || height / factor < 4 || width / factor < 4
+        if !height.is_multiple_of(factor)
+            || !width.is_multiple_of(factor)
+            || height / factor < 4
+            || width / factor < 4
         {
             return Err(Error::Shape {
                 op: "multilevel pyramid",

@@ -143,9 +143,10 @@ impl Real for f32 {
 #[target_feature(enable = "avx")]
 unsafe fn transpose8_avx(src: *const f32, src_stride: usize, dst: *mut f32, dst_stride: usize) {
     use std::arch::x86_64::*;
-    // SAFETY (every load and store): the caller's promise; unaligned accesses.
-    let r: [__m256; 8] =
-        std::array::from_fn(|i| unsafe { _mm256_loadu_ps(src.add(i * src_stride)) });
+    let r: [__m256; 8] = std::array::from_fn(|i| {
+        // SAFETY: the caller's promise: 8 rows of 8 at `src`; unaligned loads.
+        unsafe { _mm256_loadu_ps(src.add(i * src_stride)) }
+    });
     let t = [
         _mm256_unpacklo_ps(r[0], r[1]),
         _mm256_unpackhi_ps(r[0], r[1]),

@@ -6,7 +6,7 @@
 //! exponential (flex's elementwise ops run one at a time on the calling thread; its `exp` is
 //! libm's, one value at a time). A profile of a 256² RGB sweep had those at about a sixth of
 //! the anisotropy's samples. Fused, it is one pass split over the cores, its exponential
-//! eight lanes at a time ([`crate::model::cpu::elementary`]).
+//! eight lanes at a time (`crate::model::cpu::elementary`).
 //!
 //! - flex: the host kernel below.
 //! - autodiff: a constant. The anisotropy is a fixed weight of every derivative the model

@@ -325,6 +325,8 @@ pub fn host_density<T: Real>(
 /// The host kernel of [`min_det`]: `phi` `[N, 2, H, W]`, one value per deformation. The
 /// determinant is the composed `Jacobian::det`'s product and difference, so the minimum is
 /// the same value; a NaN determinant makes the result NaN (an inadmissible trial).
+// `det != det` is the NaN test that stays in vector registers (`Real` has no `is_nan`).
+#[allow(clippy::eq_op)]
 pub fn host_min_det<T: Real>(phi: &[T], [n, h, w]: [usize; 3]) -> Vec<T> {
     use rayon::prelude::*;
     let plane = h * w;

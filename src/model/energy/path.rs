@@ -143,7 +143,7 @@ impl PathEnergy {
 
     /// `‖T[f_k, φ_k] − f_{k−1}‖²` summed for decisions (SPEC §6) for the steps `k = i + 1`,
     /// `i ∈ which` (ascending), in that order; runs of consecutive steps are batched in chunks
-    /// of at most [`CHUNK_ELEMENTS`] values.
+    /// of at most `CHUNK_ELEMENTS` values.
     ///
     /// # Shapes
     /// - `f`: `K + 1` tensors `[1, C, H, W]`, `phi`: `K` tensors `[1, 2, H, W]`

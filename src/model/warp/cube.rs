@@ -238,6 +238,8 @@ fn adjoint_serial_kernel<F: Float>(
 /// The tridiagonal solve of [`super::host`] along lines of `len` samples, `stride` apart,
 /// starting at `start(line) = (line / inner) · outer + line % inner`: rows (`stride` 1) or
 /// columns (`stride` W) of every plane.
+// The kernel scales an indexed element in place as CubeCL expands it: `a[i] = a[i] * x`.
+#[allow(clippy::assign_op_pattern)]
 #[cube(launch)]
 fn solve_lines_kernel<F: Float>(
     data: &mut Tensor<F>,

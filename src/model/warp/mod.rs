@@ -44,6 +44,8 @@ pub struct BSpline {
 #[derive(Clone, Debug)]
 pub struct Sampler(SamplerKind);
 
+// One sampler per deformation and step: the size of the fused variant does not matter.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 enum SamplerKind {
     /// The fused op reads `φ` itself.

@@ -4,7 +4,7 @@
 //!
 //! Every function here is a linear map or the derivative of one, written with its adjoint:
 //!
-//! - [`prefilter`]: `c = P f` per channel (or `Pᵀ g`), the exact interpolating prefilter
+//! - [`prefilter()`]: `c = P f` per channel (or `Pᵀ g`), the exact interpolating prefilter
 //!   with whole-sample mirror boundary, as a tridiagonal solve along each axis: O(n) per line
 //!   instead of a dense `n × n` matmul.
 //! - [`sample`]: `T = B(φ) c`, the 4 × 4 B-spline evaluation at clamped points.
@@ -19,10 +19,10 @@
 //! of its channels too ([`Layout`]), where the planar entry points transpose per call. Three
 //! or four channels are evaluated and scattered through per-call quad tables ([`quad`]).
 //!
-//! The files, by operation: [`prefilter`], [`points`] (the evaluation's setup),
+//! The files, by operation: [`prefilter`](mod@prefilter), [`points`] (the evaluation's setup),
 //! [`evaluate`], [`adjoint`], [`layout`] (channels-last tables), [`quad`]. What the kernels
 //! share with the other custom ops' kernels (the element types, the AVX2 dispatch) is
-//! [`crate::model::cpu`].
+//! `crate::model::cpu`.
 
 use std::borrow::Cow;
 use std::mem::MaybeUninit;
@@ -48,7 +48,7 @@ pub use layout::*;
 pub use points::*;
 pub use prefilter::*;
 
-/// The element types of the spline kernels: [`Real`] with the hooks of the quad-table
+/// The element types of the spline kernels: `Real` (`crate::model::cpu`) with the hooks of the quad-table
 /// kernels ([`quad`]), where float32 on AVX2 has faster ones.
 pub trait SplineReal: Real {
     /// The stencils of the first `n` points of a block over a quad table ([`quad`]), where a

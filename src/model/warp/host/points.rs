@@ -171,7 +171,7 @@ impl<T: SplineReal> Iterator for Points<'_, T> {
         if p >= self.end {
             return None;
         }
-        if (p - self.first) % LANES == 0 {
+        if (p - self.first).is_multiple_of(LANES) {
             let count = LANES.min(self.end - p);
             self.first = p;
             (self.rows, self.cols) = AxisLanes::block((self.p0, self.p1), p, count, self.h, self.w);

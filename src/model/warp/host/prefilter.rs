@@ -174,7 +174,7 @@ pub fn prefilter<T: SplineReal>(data: &mut [T], height: usize, width: usize, tra
     prefilter_from(None, data, height, width, transpose);
 }
 
-/// [`prefilter`] of `source` into `data` (same length), without a separate copy pass: each
+/// [`prefilter()`] of `source` into `data` (same length), without a separate copy pass: each
 /// group of lines is copied just before it is solved, while it is in cache.
 pub fn prefilter_into<T: SplineReal>(
     source: &[T],
@@ -283,7 +283,7 @@ pub(super) fn solve_all_columns<T: SplineReal>(
 /// columns, along `H`, with whole rows of `W·C` values as lanes: a task per image, each row
 /// eliminated down the columns right after its solve along `W`, where there are at least as
 /// many images as threads; else rows and column blocks split across the threads. Per value
-/// the same operations in the same order as [`prefilter`]: the same bits.
+/// the same operations in the same order as [`prefilter()`]: the same bits.
 pub fn prefilter_channels_last<T: SplineReal>(
     source: &[T],
     out: &mut [T],

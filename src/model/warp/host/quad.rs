@@ -88,7 +88,7 @@ fn stencil<T: SplineReal>(
     s
 }
 
-/// The axes of a block of [`LANES`] points: their four indices and weights along the axis,
+/// The axes of a block of `LANES` points: their four indices and weights along the axis,
 /// structure of arrays (as `AxisLanes` holds them).
 pub type BlockAxis<'a, T> = (&'a [[u32; LANES]; 4], &'a [[T; LANES]; 4]);
 
@@ -484,7 +484,11 @@ mod tests {
         };
         let phi = (0..d.n * 2 * d.points())
             .map(|i| {
-                let hi = if (i / d.points()) % 2 == 0 { d.h } else { d.w } as f64;
+                let hi = if (i / d.points()).is_multiple_of(2) {
+                    d.h
+                } else {
+                    d.w
+                } as f64;
                 T::from_f64((i as f64 * 0.618).rem_euclid(hi + 4.0) - 2.0)
             })
             .collect();

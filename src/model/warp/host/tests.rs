@@ -392,7 +392,7 @@ fn adjoint_and_position_gradient_match(c: usize) {
     let h = 1e-6;
     for i in 0..phi.len() {
         let frac = phi[i] - phi[i].floor();
-        let axis_hi = if (i / (d.ho * d.wo)) % 2 == 0 {
+        let axis_hi = if (i / (d.ho * d.wo)).is_multiple_of(2) {
             8.0
         } else {
             10.0
