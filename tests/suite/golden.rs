@@ -360,7 +360,47 @@ fn golden_comparison_rejects_a_wrong_value() {
     assert!(outcome.is_err());
 }
 
+/// SPEC §11's landmark term: `E_lm`, the residuals `φ_k(p_i^{k−1}) − p_i^k` and `∂E_lm/∂φ`
+/// by autodiff and by the hand-derived sparse form.
+fn landmark_energy(backend: Backend) {
+    use deepmorph::model::energy::landmarks::{LandmarkTerm, Landmarks};
+    let case = Case::open("landmark_energy_K3_10x13", backend, true);
+    let k = case.param("K") as usize;
+    let grid = case.grid("phi");
+    let pairs = |name: &str| -> Vec<[f64; 2]> {
+        case.golden
+            .input(name)
+            .data
+            .chunks(2)
+            .map(|p| [p[0], p[1]])
+            .collect()
+    };
+    let landmarks = Landmarks::new(pairs("P"), pairs("Q"), (grid.height(), grid.width())).unwrap();
+    let term = LandmarkTerm::new(&grid, &landmarks, k, case.param("gamma")).unwrap();
+    let phi: Tensor<4> = case.input::<4>("phi").require_grad();
+    let energy = term.energy(phi.clone());
+    case.check("E_lm", energy.clone());
+    case.check("residuals", term.residuals(phi.clone().detach()));
+    let grads = energy.backward();
+    case.check("grad_phi", phi.grad(&grads).expect("grad phi"));
+    let host = term.gradient_host(
+        &case.golden.input("phi").data,
+        (grid.height(), grid.width()),
+    );
+    case.check_host("grad_phi", &host);
+    // The steps' parts add up to the whole.
+    let by_steps: f64 = (1..=k)
+        .map(|step| values(term.step_energy(step, phi.clone().detach().narrow(0, step - 1, 1)))[0])
+        .sum();
+    let whole = values(term.energy(phi.detach()))[0];
+    assert!(
+        (by_steps - whole).abs() <= 1e-6 * whole,
+        "{by_steps} vs {whole}"
+    );
+}
+
 on_each_backend!(
+    landmark_energy,
     prefilter,
     warp_admissible,
     warp_clamped,

@@ -750,7 +750,41 @@ mod parity {
     );
 }
 
+/// SPEC §11's landmark term: the hand-derived sparse gradient against autodiff and central
+/// differences of every entry (the term is quadratic in `φ`: the points are fixed).
+fn landmark_gradient_check(backend: Backend) {
+    use deepmorph::model::energy::landmarks::{LandmarkTerm, Landmarks};
+    let mut s = Setup::new(backend, 11);
+    let k = 3;
+    let phi_host = s.rng.smooth_deformation(k, H, W, 0.8);
+    let landmarks = Landmarks::new(
+        vec![[2.3, 3.7], [5.0, 6.0], [7.6, 1.4], [1.2, 9.9]],
+        vec![[3.1, 5.2], [4.2, 7.5], [6.9, 3.0], [2.0, 8.6]],
+        (H, W),
+    )
+    .unwrap();
+    let term = LandmarkTerm::new(&s.grid, &landmarks, k, 250.0).unwrap();
+    let leaf = s.tensor(phi_host.clone(), [k, 2, H, W]).require_grad();
+    let grads = term.energy(leaf.clone()).backward();
+    let auto = values(leaf.grad(&grads).unwrap());
+    let hand = term.gradient_host(&phi_host, (H, W));
+    check(
+        "dE_lm/dphi hand vs autodiff",
+        &hand,
+        &auto,
+        HAND_VS_AUTODIFF,
+    );
+    let fd = finite_differences(&phi_host, central, |copies| {
+        copies
+            .into_iter()
+            .map(|c| values(term.energy(s.tensor(c, [k, 2, H, W])))[0])
+            .collect()
+    });
+    check("dE_lm/dphi hand vs FD", &hand, &fd, FINITE_DIFFERENCE);
+}
+
 on_each_cpu_backend!(
+    landmark_gradient_check,
     density_gradient_check,
     regularizer_gradient_check,
     data_term_gradient_check,
