@@ -4,6 +4,8 @@
 //!
 //! - `DEEPMORPH_INJECT_NONFINITE=LEVEL:SWEEP`: the solver meets a NaN after that sweep (the
 //!   non-finite path end to end: outputs written from the last finite iterate, exit 3).
+//!   Only in builds with the test-only feature `check` (the tests' builds); elsewhere it is
+//!   refused.
 //! - `DEEPMORPH_INTERRUPT_AT=LEVEL:SWEEP`: the interrupt flag is raised after that joint
 //!   sweep, as a signal would (`--resume` end to end).
 
@@ -37,10 +39,22 @@ impl TestHooks {
     }
 
     /// `job` with the fault injected, if one is set.
-    pub fn apply(&self, job: MorphJob) -> MorphJob {
+    ///
+    /// # Errors
+    ///
+    /// [`Error::InvalidParameter`] if a fault is asked for in a build without the test-only
+    /// feature `check`, which alone can inject one.
+    pub fn apply(&self, job: MorphJob) -> Result<MorphJob> {
         match self.inject_nonfinite {
-            Some((level, sweep)) => job.inject_nonfinite(level, sweep),
-            None => job,
+            None => Ok(job),
+            #[cfg(feature = "check")]
+            Some((level, sweep)) => Ok(job.inject_nonfinite(level, sweep)),
+            #[cfg(not(feature = "check"))]
+            Some((level, sweep)) => Err(Error::invalid(
+                "DEEPMORPH_INJECT_NONFINITE",
+                format!("{level}:{sweep}"),
+                "unset: fault injection is a test hook, built only with the feature `check`",
+            )),
         }
     }
 

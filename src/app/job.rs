@@ -45,6 +45,8 @@ pub struct MorphJob {
     estimate: u64,
     estimate_time: bool,
     resume: Option<PathBuf>,
+    /// A fault for the tests (feature `check`): `None` in every other build.
+    #[cfg_attr(not(feature = "check"), allow(dead_code))]
     inject_nonfinite: Option<(usize, usize)>,
 }
 
@@ -147,6 +149,7 @@ impl MorphJob {
 
     /// For tests of the non-finite path: see [`Multilevel::inject_nonfinite`].
     #[doc(hidden)]
+    #[cfg(feature = "check")]
     pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
         self.inject_nonfinite = Some((level, sweep));
         self
@@ -282,6 +285,7 @@ impl MorphJob {
                 deformations: folder.deformations,
             })?;
         }
+        #[cfg(feature = "check")]
         if let Some((level, sweep)) = self.inject_nonfinite {
             driver = driver.inject_nonfinite(level, sweep);
         }

@@ -302,6 +302,7 @@ impl Multilevel {
     /// numerical failure would. The driver must then stop with [`Termination::NonFinite`]
     /// and the last finite iterate.
     #[doc(hidden)]
+    #[cfg(feature = "check")]
     pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
         self.inject_nonfinite = Some((level, sweep));
         self

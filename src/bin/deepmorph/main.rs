@@ -105,7 +105,7 @@ fn run(cli: Cli) -> Result<i32> {
 
 fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
     let hooks = TestHooks::from_env()?;
-    let mut job = hooks.apply(MorphJob::prepare(config, inputs)?.estimate_time(!args.quiet));
+    let mut job = hooks.apply(MorphJob::prepare(config, inputs)?.estimate_time(!args.quiet))?;
     if let Some(dir) = &args.resume {
         job = job.resume_from(dir);
     }
