@@ -23,7 +23,8 @@ use crate::model::energy::data::data_term_from_warped;
 use crate::model::energy::regularizer::{regularizer, weighted_density};
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{
-    DeformationStep, FeatureStep, Ipalm, LevelState, SweepKind, SweepReport, read_scalars,
+    DeformationStep, FeatureStep, Ipalm, LevelState, SweepKind, SweepReport, read_groups,
+    read_scalars,
 };
 use crate::solver::prox::{LinearisedData, pick};
 
@@ -153,20 +154,20 @@ impl Deformations<'_> {
             .expect("the regulariser depends on phi")
             .autodiff();
         let k = point.dims()[0];
-        let v = read_scalars(
+        let [smooth, grad_norm2] = read_groups(
             grid,
-            vec![
+            [
                 self.smooth_decision(point.clone(), steps),
                 grid.decision_sum_each(gradient.clone().square()),
             ],
         );
-        if let Some(bad) = (0..k).find(|&i| !(v[i].is_finite() && v[k + i].is_finite())) {
+        if let Some(bad) = (0..k).find(|&i| !(smooth[i].is_finite() && grad_norm2[i].is_finite())) {
             return Err(Error::NonFinite {
                 what: format!(
                     "step k = {}: K·R at the linearisation point is {}, |grad|^2 = {}",
                     steps[bad] + 1,
-                    v[bad],
-                    v[k + bad]
+                    smooth[bad],
+                    grad_norm2[bad]
                 ),
             });
         }
@@ -183,7 +184,7 @@ impl Deformations<'_> {
             ),
             steps: steps.to_vec(),
             point,
-            smooth: v[..k].to_vec(),
+            smooth,
             gradient,
         })
     }
@@ -215,27 +216,19 @@ impl Deformations<'_> {
             let sub = lin.select(&idx);
             let candidates = sub.candidates(&l);
             let d = candidates.clone() - sub.point.clone();
-            let v = read_scalars(
+            let [min_det, smooth, inner, norm2] = read_groups(
                 grid,
-                vec![
+                [
                     min_det_each(candidates.clone()),
                     self.smooth_decision(candidates.clone(), &sub.steps),
                     grid.decision_sum_each(sub.gradient.clone() * d.clone()),
                     grid.decision_sum_each(d.square()),
                 ],
             );
-            let n = idx.len();
             for (j, (&i, &l)) in idx.iter().zip(&l).enumerate() {
-                let outcome = if !(v[j] > 0.0) {
+                let outcome = if !(min_det[j] > 0.0) {
                     Trial::Inadmissible
-                } else if bt.accepts(
-                    v[n + j],
-                    sub.smooth[j],
-                    v[2 * n + j],
-                    v[3 * n + j],
-                    l,
-                    slack,
-                ) {
+                } else if bt.accepts(smooth[j], sub.smooth[j], inner[j], norm2[j], l, slack) {
                     Trial::Accepted(item(&candidates, j))
                 } else {
                     Trial::Rejected
@@ -526,7 +519,7 @@ impl Ipalm {
             // The squared norms of each item's two residuals, `[n]` each, summed for decisions;
             // `Q` is their sum times `scale`, taken on the host.
             let norms_each = |(moved, fixed): &(Tensor<4>, Tensor<4>)| {
-                vec![
+                [
                     grid.decision_sum_each(moved.clone().square()),
                     grid.decision_sum_each(fixed.clone().square()),
                 ]
@@ -545,11 +538,13 @@ impl Ipalm {
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
             let warped_tilde = warped.detach();
             let all = indices(n, |_| true);
-            let mut parts = norms_each(&residuals(x_tilde.clone(), warped_tilde.clone(), &all));
-            parts.push(grid.decision_sum_each(grad.clone().square()));
-            let v = read_scalars(grid, parts);
-            let q_tilde: Vec<f64> = (0..n).map(|i| (v[i] + v[n + i]) * scale).collect();
-            let norm2 = &v[2 * n..];
+            let [moved, fixed] =
+                norms_each(&residuals(x_tilde.clone(), warped_tilde.clone(), &all));
+            let [moved, fixed, norm2] = read_groups(
+                grid,
+                [moved, fixed, grid.decision_sum_each(grad.clone().square())],
+            );
+            let q_tilde: Vec<f64> = (0..n).map(|i| (moved[i] + fixed[i]) * scale).collect();
             if let Some(i) = (0..n).find(|&i| !(q_tilde[i].is_finite() && norm2[i].is_finite())) {
                 return Err(Error::NonFinite {
                     what: format!(
@@ -575,17 +570,16 @@ impl Ipalm {
                 // of the quadratic Q (see the sequential feature step).
                 let moved =
                     grid.decision_sum_each((warped.clone() - pick(&warped_tilde, &idx)).square());
-                let mut parts = norms_each(&residuals(candidates.clone(), warped, &idx));
-                parts.push(moved);
-                let v = read_scalars(grid, parts);
+                let [to_prev, to_next] = norms_each(&residuals(candidates.clone(), warped, &idx));
+                let [to_prev, to_next, moved] = read_groups(grid, [to_prev, to_next, moved]);
                 for (j, (&i, &l)) in idx.iter().zip(&l).enumerate() {
-                    norms[i] = (v[j], v[m + j]);
-                    let q_new = (v[j] + v[m + j]) * scale;
+                    norms[i] = (to_prev[j], to_next[j]);
+                    let q_new = (to_prev[j] + to_next[j]) * scale;
                     let (g2, q0) = (norm2[i], q_tilde[i]);
                     // x_new − x̃ = −∇Q/L: ‖x_new − x̃‖² = ‖∇Q‖²/L²; the test on the exact
                     // remainder scale·(‖T[d, φ_k]‖² + ‖d‖²), as the sequential feature step.
                     let d2 = g2 / (l * l);
-                    let remainder = scale * (v[2 * m + j] + d2);
+                    let remainder = scale * (moved[j] + d2);
                     let outcome = if bt.accepts_remainder(q_new, q0, remainder, d2, l, slack) {
                         Trial::Accepted(item(&candidates, j))
                     } else {

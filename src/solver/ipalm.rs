@@ -490,18 +490,18 @@ impl DeformationProblem<'_> {
             .grad(&grads)
             .expect("the regulariser depends on phi")
             .autodiff();
-        let v = read_scalars(
+        let [[smooth], [grad_norm2]] = read_groups(
             grid,
-            vec![
+            [
                 self.smooth_decision(density),
                 grid.decision_norm2(gradient.clone()),
             ],
-        );
-        if !(v[0].is_finite() && v[1].is_finite()) {
+        )
+        .map(one);
+        if !(smooth.is_finite() && grad_norm2.is_finite()) {
             return Err(Error::NonFinite {
                 what: format!(
-                    "step k = {k}: K·R at the linearisation point is {}, |grad|^2 = {}",
-                    v[0], v[1]
+                    "step k = {k}: K·R at the linearisation point is {smooth}, |grad|^2 = {grad_norm2}"
                 ),
             });
         }
@@ -518,7 +518,7 @@ impl DeformationProblem<'_> {
         );
         Ok(Linearised {
             point,
-            smooth: v[0],
+            smooth,
             gradient,
             data,
         })
@@ -541,21 +541,22 @@ impl DeformationProblem<'_> {
         bt.search_from(stored, streak, |l| {
             let candidate = lin.candidate(l);
             let d = candidate.clone() - lin.point.clone();
-            let v = read_scalars(
+            let [[min_det], [smooth], [inner], [norm2]] = read_groups(
                 grid,
-                vec![
+                [
                     min_det_each(candidate.clone()),
                     self.smooth_decision(self.density(candidate.clone())),
                     grid.decision_dot(lin.gradient.clone(), d.clone()),
                     grid.decision_norm2(d),
                 ],
-            );
+            )
+            .map(one);
             // The prox fixes the boundary exactly, so admissibility is det J > 0 (a NaN
             // fails it too).
-            Ok(if !(v[0] > 0.0) {
+            Ok(if !(min_det > 0.0) {
                 Trial::Inadmissible
-            } else if bt.accepts(v[1], lin.smooth, v[2], v[3], l, slack) {
-                Trial::Accepted((candidate, v[1]))
+            } else if bt.accepts(smooth, lin.smooth, inner, norm2, l, slack) {
+                Trial::Accepted((candidate, smooth))
             } else {
                 Trial::Rejected
             })
@@ -574,6 +575,25 @@ pub(super) fn read_scalars(grid: &Grid, parts: Vec<Tensor<1>>) -> Vec<f64> {
         parts.into_iter().map(|t| t.detach().cast(dtype)).collect(),
         0,
     ))
+}
+
+/// The one value of a group of [`read_groups`] read from a `[1]` tensor.
+fn one(group: Vec<f64>) -> [f64; 1] {
+    [group[0]]
+}
+
+/// `P` groups of scalars (`[n_p]` tensors, e.g. one value per batch item) read back in one
+/// transfer, as [`read_scalars`] does, and handed back group by group, so that a caller
+/// names what it reads (`let [min_det, smooth, inner, norm2] = …`) instead of indexing one
+/// flat vector by position.
+pub(super) fn read_groups<const P: usize>(grid: &Grid, parts: [Tensor<1>; P]) -> [Vec<f64>; P] {
+    let lengths = parts.each_ref().map(|t| t.dims()[0]);
+    let values = read_scalars(grid, parts.into());
+    let mut at = 0;
+    lengths.map(|n| {
+        at += n;
+        values[at - n..at].to_vec()
+    })
 }
 
 impl Ipalm {
