@@ -97,6 +97,11 @@ impl Grid {
     pub fn decision_sum_each<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
         let dims = t.dims();
         let n = dims[0];
+        if n == 1 {
+            // One item is [`decision_sum`](Self::decision_sum) itself: a step of one `k`
+            // sums exactly as it did before the schedules shared their steps.
+            return self.decision_sum(t);
+        }
         let rest = dims.iter().product::<usize>() / n.max(1);
         let t = t.detach().reshape([n, rest]);
         match self.accumulation() {
@@ -111,6 +116,70 @@ impl Grid {
                 0,
             ),
             Accumulation::Float32 => t.sum_dim(1).reshape([n]),
+        }
+    }
+
+    /// [`decision_dot`](Self::decision_dot) of each item of a batch: `[N]`.
+    ///
+    /// # Shapes
+    /// - `a`, `b`: `[N, …]`
+    pub fn decision_dot_each<const D: usize>(&self, a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
+        self.each_pair(a, b, |a, b| self.decision_dot(a, b), |a, b| a * b)
+    }
+
+    /// [`decision_distance2`](Self::decision_distance2) of each item of a batch: `[N]`.
+    ///
+    /// # Shapes
+    /// - `a`, `b`: `[N, …]`
+    pub fn decision_distance2_each<const D: usize>(&self, a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
+        self.each_pair(
+            a,
+            b,
+            |a, b| self.decision_distance2(a, b),
+            |a, b| (a - b).square(),
+        )
+    }
+
+    /// [`decision_norm2`](Self::decision_norm2) of each item of a batch: `[N]`.
+    ///
+    /// # Shapes
+    /// - `t`: `[N, …]`
+    pub fn decision_norm2_each<const D: usize>(&self, t: Tensor<D>) -> Tensor<1> {
+        self.each_pair(
+            t.clone(),
+            t,
+            |t, _| self.decision_norm2(t),
+            |t, _| t.square(),
+        )
+    }
+
+    /// A decision reduction `whole` of two tensors, item by item along dimension 0: where
+    /// the sums are float64, each item through `whole` on its own (so that its value is bit
+    /// for bit what one item alone gives: the sequential schedule's); in float32, `summand`
+    /// reduced per item in one pass.
+    fn each_pair<const D: usize>(
+        &self,
+        a: Tensor<D>,
+        b: Tensor<D>,
+        whole: impl Fn(Tensor<D>, Tensor<D>) -> Tensor<1>,
+        summand: impl Fn(Tensor<D>, Tensor<D>) -> Tensor<D>,
+    ) -> Tensor<1> {
+        let n = a.dims()[0];
+        if n == 1 {
+            return whole(a, b);
+        }
+        match self.accumulation() {
+            Accumulation::Float64 => Tensor::cat(
+                (0..n)
+                    .map(|i| whole(a.clone().narrow(0, i, 1), b.clone().narrow(0, i, 1)))
+                    .collect(),
+                0,
+            ),
+            Accumulation::Float32 => {
+                let t = summand(a.detach(), b.detach());
+                let rest = t.dims().iter().product::<usize>() / n;
+                t.reshape([n, rest]).sum_dim(1).reshape([n])
+            }
         }
     }
 

@@ -13,18 +13,15 @@
 use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
-use crate::model::deformation::{is_admissible, min_det_each};
-use crate::model::energy::data::data_term_from_warped;
 use crate::model::energy::path::{EnergyValue, PathEnergy, StepEnergies};
-use crate::model::energy::regularizer::{mean_density, weighted_density};
+use crate::model::energy::regularizer::weighted_density;
 use crate::model::grid::to_host;
 use crate::model::grid::{Accumulation, Grid};
 use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
 use crate::model::sobel::Sobel;
-use crate::model::warp::Sampler;
-use crate::solver::backtracking::{Backtracking, Search, Trial};
-use crate::solver::prox::LinearisedData;
+use crate::solver::backtracking::Backtracking;
+use crate::solver::steps::{FeatureSteps, FrameProducts};
 
 /// The solver's settings beyond the energy (SPEC §6, §9).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -325,7 +322,7 @@ impl SweepReport {
 
     /// Records the deformation step of `k`: only `D_k` depends on `φ_k`, and a dropped step
     /// that did not evaluate it left it as it was.
-    fn record_deformation(&mut self, k: usize, step: DeformationStep) {
+    pub(super) fn record_deformation(&mut self, k: usize, step: DeformationStep) {
         if !(step.dropped && step.residual_norm2.is_none()) {
             self.residual_norm2[k - 1] = step.residual_norm2;
         }
@@ -374,196 +371,6 @@ pub struct Ipalm {
     pub(super) config: IpalmConfig,
 }
 
-/// The pieces of `K·R[·, a_k]` and `e(·)` of one deformation step (SPEC §6 step 2).
-struct DeformationProblem<'a> {
-    ipalm: &'a Ipalm,
-    /// `a_k`, `[1, H, W]`.
-    a: Tensor<3>,
-    /// `P f_k`, `[1, C, H, W]`.
-    coeffs_k: Tensor<4>,
-    /// `f_{k−1}`, `[1, C, H, W]`.
-    f_km1: Tensor<4>,
-    /// `K`.
-    steps: f64,
-}
-
-/// The safeguard's `e(φ)` and the squared residual norm in its data term.
-#[derive(Clone, Copy)]
-struct LocalEnergy {
-    value: f64,
-    residual_norm2: f64,
-}
-
-/// A deformation step linearised around a point `φ̃` (the extrapolated point, or `φ_k` after
-/// a restart): `S(φ̃)` summed for decisions, `g = ∇S(φ̃)`, and the prox of the linearised
-/// data term.
-struct Linearised {
-    point: Tensor<4>,
-    smooth: f64,
-    gradient: Tensor<4>,
-    data: LinearisedData,
-}
-
-impl Linearised {
-    /// `φ_new` for the trial `L`: the prox at `y = φ̃ − g/L`.
-    fn candidate(&self, l: f64) -> Tensor<4> {
-        self.data
-            .candidate(self.point.clone(), self.gradient.clone(), l)
-    }
-}
-
-impl DeformationProblem<'_> {
-    /// `a_k · W(J(φ))` per pixel, differentiable where `φ` is: the summand of `S` and of its
-    /// decision sum.
-    fn density(&self, phi: Tensor<4>) -> Tensor<3> {
-        let p = self.ipalm.energy.params();
-        weighted_density(phi, self.a.clone(), p.lambda, p.mu)
-    }
-
-    /// `S(φ) = K·R[φ, a_k]` from [`density`](Self::density), differentiable (float32 sum).
-    fn smooth(&self, density: Tensor<3>) -> Tensor<1> {
-        mean_density(density).mul_scalar(self.steps)
-    }
-
-    /// `S(φ)` summed for decisions, from [`density`](Self::density).
-    fn smooth_decision(&self, density: Tensor<3>) -> Tensor<1> {
-        let grid = &self.ipalm.grid;
-        grid.decision_sum(density)
-            .mul_scalar(self.steps / grid.pixels() as f64)
-    }
-
-    /// The true local energy `e(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` summed for
-    /// decisions (the safeguard's); `smooth`, when given, is `S(φ)` as a trial summed it.
-    fn local_energy(&self, phi: Tensor<4>, smooth: Option<f64>) -> LocalEnergy {
-        let warped = self
-            .ipalm
-            .energy
-            .bspline()
-            .interpolate(self.coeffs_k.clone(), phi.clone());
-        self.local_energy_of(phi, warped, smooth)
-    }
-
-    /// [`local_energy`](Self::local_energy) with `T[f_k, φ]` already computed.
-    fn local_energy_of(
-        &self,
-        phi: Tensor<4>,
-        warped: Tensor<4>,
-        smooth: Option<f64>,
-    ) -> LocalEnergy {
-        let ipalm = self.ipalm;
-        let grid = &ipalm.grid;
-        let data_scale = self.steps
-            / (ipalm.energy.params().delta
-                * 2.0
-                * ipalm.layout.channels() as f64
-                * grid.pixels() as f64);
-        let distance = grid.decision_distance2(warped, self.f_km1.clone());
-        let (smooth, residual_norm2) = match smooth {
-            Some(smooth) => (smooth, read_scalars(grid, vec![distance])[0]),
-            None => {
-                let v = read_scalars(
-                    grid,
-                    vec![self.smooth_decision(self.density(phi)), distance],
-                );
-                (v[0], v[1])
-            }
-        };
-        LocalEnergy {
-            value: smooth + residual_norm2 * data_scale,
-            residual_norm2,
-        }
-    }
-
-    /// Linearises the step around `point` (SPEC §6 step 2).
-    ///
-    /// # Errors
-    ///
-    /// [`Error::NonFinite`] if `S(φ̃)` or its gradient is not finite.
-    fn linearise_at(&self, point: Tensor<4>, k: usize) -> Result<Linearised> {
-        let ipalm = self.ipalm;
-        let grid = &ipalm.grid;
-        let leaf = point.clone().detach().require_grad();
-        // One density for the gradient and the decision sum: the same values either way.
-        let density = self.density(leaf.clone());
-        let grads = self.smooth(density.clone()).backward();
-        let gradient = leaf
-            .grad(&grads)
-            .expect("the regulariser depends on phi")
-            .autodiff();
-        let [[smooth], [grad_norm2]] = read_groups(
-            grid,
-            [
-                self.smooth_decision(density),
-                grid.decision_norm2(gradient.clone()),
-            ],
-        )
-        .map(one);
-        if !(smooth.is_finite() && grad_norm2.is_finite()) {
-            return Err(Error::NonFinite {
-                what: format!(
-                    "step k = {k}: K·R at the linearisation point is {smooth}, |grad|^2 = {grad_norm2}"
-                ),
-            });
-        }
-        let p = ipalm.energy.params();
-        let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
-        let data = LinearisedData::around(
-            grid,
-            ipalm.energy.bspline(),
-            &ipalm.sobel,
-            self.coeffs_k.clone(),
-            self.f_km1.clone(),
-            point.clone(),
-            kappa,
-        );
-        Ok(Linearised {
-            point,
-            smooth,
-            gradient,
-            data,
-        })
-    }
-
-    /// The backtracking search of SPEC §6 step 2 around `lin`, from the stored `L` and the
-    /// streak `m` (first trial `0.9^(m+1)·L`): one read-back per trial (`min det J`,
-    /// `S(φ_new)`, `⟨g, d⟩`, `‖d‖²`). Accepts `(φ_new, S(φ_new))`, the latter as the test
-    /// summed it.
-    fn search(
-        &self,
-        lin: &Linearised,
-        stored: f64,
-        streak: u32,
-    ) -> Result<Search<(Tensor<4>, f64)>> {
-        let ipalm = self.ipalm;
-        let grid = &ipalm.grid;
-        let bt = ipalm.config.backtracking;
-        let slack = ipalm.slack();
-        bt.search_from(stored, streak, |l| {
-            let candidate = lin.candidate(l);
-            let d = candidate.clone() - lin.point.clone();
-            let [[min_det], [smooth], [inner], [norm2]] = read_groups(
-                grid,
-                [
-                    min_det_each(candidate.clone()),
-                    self.smooth_decision(self.density(candidate.clone())),
-                    grid.decision_dot(lin.gradient.clone(), d.clone()),
-                    grid.decision_norm2(d),
-                ],
-            )
-            .map(one);
-            // The prox fixes the boundary exactly, so admissibility is det J > 0 (a NaN
-            // fails it too).
-            Ok(if !(min_det > 0.0) {
-                Trial::Inadmissible
-            } else if bt.accepts(smooth, lin.smooth, inner, norm2, l, slack) {
-                Trial::Accepted((candidate, smooth))
-            } else {
-                Trial::Rejected
-            })
-        })
-    }
-}
-
 /// Several `[1]` tensors read back from the device in one transfer, as float64 where the
 /// backend has it (decision sums already are).
 pub(super) fn read_scalars(grid: &Grid, parts: Vec<Tensor<1>>) -> Vec<f64> {
@@ -575,11 +382,6 @@ pub(super) fn read_scalars(grid: &Grid, parts: Vec<Tensor<1>>) -> Vec<f64> {
         parts.into_iter().map(|t| t.detach().cast(dtype)).collect(),
         0,
     ))
-}
-
-/// The one value of a group of [`read_groups`] read from a `[1]` tensor.
-fn one(group: Vec<f64>) -> [f64; 1] {
-    [group[0]]
 }
 
 /// `P` groups of scalars (`[n_p]` tensors, e.g. one value per batch item) read back in one
@@ -594,6 +396,14 @@ pub(super) fn read_groups<const P: usize>(grid: &Grid, parts: [Tensor<1>; P]) ->
         at += n;
         values[at - n..at].to_vec()
     })
+}
+
+/// The one result of a step run for one `k`.
+fn one_step<T>(results: Vec<T>) -> [T; 1] {
+    let n = results.len();
+    results
+        .try_into()
+        .unwrap_or_else(|_| unreachable!("a step of one k gave {n} results"))
 }
 
 impl Ipalm {
@@ -777,13 +587,20 @@ impl Ipalm {
         for k in 1..=k_steps {
             if let Some(anisotropy) = &anisotropy {
                 let a = anisotropy.clone().narrow(0, k - 1, 1);
-                let (phi_new, step) = self.deformation_step(state, k, a.clone(), carried.take())?;
+                let [(phi_new, step)] =
+                    one_step(self.deformation_steps(state, &[k], a.clone(), carried.take())?);
                 state.apply_deformation(k, phi_new, &step);
                 report.anisotropy.push(a);
                 report.record_deformation(k, step);
             }
             if k < k_steps {
-                let (f_new, step, next, own) = self.feature_step(state, k, carry.take(k + 1))?;
+                let FeatureSteps {
+                    frames,
+                    steps,
+                    next,
+                    own,
+                } = self.feature_steps(state, &[k], carry.take(k + 1))?;
+                let ([f_new], [step], [own]) = (one_step(frames), one_step(steps), one_step(own));
                 carried = Some(next);
                 carry.put(k, own);
                 state.l_f[k - 1] = step.lipschitz.clone();
@@ -793,277 +610,6 @@ impl Ipalm {
         }
         Ok(report)
     }
-
-    /// The deformation step of `k` (SPEC §6 step 2): returns `φ_new` and what happened.
-    ///
-    /// `carried`, from the feature step of `k − 1` in this sweep, holds `P f_k` and
-    /// `T[f_k, φ_k]` (neither changed since): the step starts from them instead of computing
-    /// them again, with the same values.
-    fn deformation_step(
-        &self,
-        state: &LevelState,
-        k: usize,
-        a: Tensor<3>,
-        carried: Option<FrameProducts>,
-    ) -> Result<(Tensor<4>, DeformationStep)> {
-        let (coeffs_k, current_warp) = match carried {
-            Some(FrameProducts { coeffs, warped }) => (coeffs, Some(warped)),
-            None => (self.energy.bspline().coefficients(state.f[k].clone()), None),
-        };
-        let problem = DeformationProblem {
-            ipalm: self,
-            a,
-            coeffs_k,
-            f_km1: state.f[k - 1].clone(),
-            steps: state.steps() as f64,
-        };
-        let phi = state.phi[k - 1].clone();
-        let stored = state.l_phi[k - 1];
-        let streak = state.phi_streak[k - 1];
-        let mut step = DeformationStep {
-            streak,
-            lipschitz: stored,
-            trials: 0,
-            inadmissible_trials: 0,
-            restarted: false,
-            safeguard_doublings: 0,
-            dropped: false,
-            residual_norm2: None,
-        };
-        let mut current: Option<LocalEnergy> = None;
-        let dropped = |mut step: DeformationStep,
-                       current: Option<LocalEnergy>|
-         -> Result<(Tensor<4>, DeformationStep)> {
-            // SPEC §6, *Giving up*: keep φ_k and the L this step started from.
-            step.dropped = true;
-            step.lipschitz = stored;
-            step.residual_norm2 = current.map(|e| e.residual_norm2);
-            Ok((phi.clone(), step))
-        };
-
-        let extrapolated = (self.config.beta > 0.0)
-            .then(|| {
-                phi.clone()
-                    + (phi.clone() - state.phi_prev[k - 1].clone()).mul_scalar(self.config.beta)
-            })
-            .filter(|e| is_admissible(&self.grid, e.clone()));
-        let mut lin =
-            problem.linearise_at(extrapolated.clone().unwrap_or_else(|| phi.clone()), k)?;
-        let mut search = problem.search(&lin, stored, streak)?;
-        step.trials += search.trials;
-        step.inadmissible_trials += search.inadmissible;
-        let Some((mut phi_new, mut smooth_new)) = search.accepted.take() else {
-            return dropped(step, current);
-        };
-        let mut accepted_l = search.lipschitz;
-
-        if self.config.safeguard {
-            // By blocks, as a carried one was: the safeguard's reference value is then the
-            // same whichever way `T[f_k, φ_k]` came.
-            let warped = current_warp.unwrap_or_else(|| {
-                let sampler = self.energy.bspline().sampler(phi.clone());
-                self.warp_by_blocks(&sampler, problem.coeffs_k.clone())
-            });
-            let at_phi = problem.local_energy_of(phi.clone(), warped, None);
-            current = Some(at_phi);
-            let tolerance = self.slack() * at_phi.value.abs();
-            // Written so that a NaN energy counts as a rise.
-            let rises = |e: LocalEnergy| !(e.value <= at_phi.value + tolerance);
-            let mut energy = problem.local_energy(phi_new.clone(), Some(smooth_new));
-            if rises(energy) && extrapolated.is_some() {
-                // Restart the inertia: as L grows the prox tends to φ̃, which for the
-                // extrapolated point may lie above e(φ_k); around φ_k it tends to φ_k.
-                step.restarted = true;
-                lin = problem.linearise_at(phi.clone(), k)?;
-                let mut search = problem.search(&lin, stored, streak)?;
-                step.trials += search.trials;
-                step.inadmissible_trials += search.inadmissible;
-                let Some(restarted) = search.accepted.take() else {
-                    return dropped(step, current);
-                };
-                (phi_new, smooth_new) = restarted;
-                accepted_l = search.lipschitz;
-                energy = problem.local_energy(phi_new.clone(), Some(smooth_new));
-            }
-            let mut l = accepted_l;
-            while rises(energy) {
-                if step.safeguard_doublings == self.config.safeguard_max {
-                    return dropped(step, current);
-                }
-                step.safeguard_doublings += 1;
-                l *= 2.0;
-                phi_new = lin.candidate(l);
-                energy = problem.local_energy(phi_new.clone(), None);
-            }
-            step.residual_norm2 = Some(energy.residual_norm2);
-        }
-        // The doublings answered a linearisation that misled this step, not the curvature
-        // of S: the next sweep starts from the L the backtracking accepted.
-        step.lipschitz = accepted_l;
-        Ok((phi_new, step))
-    }
-
-    /// `T[c, φ]` for the coefficients `c` of a whole frame (`[1, C_tot, H, W]`), sampled
-    /// block by block as the feature steps' trials sample it.
-    ///
-    /// A sampler's result for a channel can depend on how many channels it reads at once
-    /// (the fused kernels take a planar or a channels-last path, the composed one a scalar or
-    /// a row gather; their sums round differently). A `T[f_k, φ_k]` carried from a trial and
-    /// one computed afresh must be the same values (SPEC §6's decisions compare them), so
-    /// every such warp of a whole frame goes through here. The prefilter does not have this
-    /// problem: each channel's lines are solved alike whatever the tensor holds.
-    fn warp_by_blocks(&self, sampler: &Sampler, coeffs: Tensor<4>) -> Tensor<4> {
-        let blocks = self.layout.blocks();
-        if blocks.len() == 1 {
-            return sampler.sample(coeffs);
-        }
-        let parts = blocks
-            .iter()
-            .map(|block| {
-                let (start, len) = (block.channels.start, block.channels.len());
-                sampler.sample(coeffs.clone().narrow(1, start, len))
-            })
-            .collect();
-        Tensor::cat(parts, 1)
-    }
-
-    /// The feature step of `k < K` (SPEC §6 step 3), block by block: returns `f_new`.
-    ///
-    /// `next`, when given, holds `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` (the previous sweep's
-    /// feature step of `k + 1` computed them; neither has changed since); otherwise they are
-    /// computed. Returns them too, for the deformation step of `k + 1`, and `P f_new` and
-    /// `T[f_new, φ_k]` as the accepted trials computed them (`None` when a block gave up).
-    #[allow(clippy::type_complexity)]
-    fn feature_step(
-        &self,
-        state: &LevelState,
-        k: usize,
-        next: Option<FrameProducts>,
-    ) -> Result<(Tensor<4>, FeatureStep, FrameProducts, Option<FrameProducts>)> {
-        let bspline = self.energy.bspline();
-        let f_k = state.f[k].clone();
-        let f_tilde = if self.config.beta > 0.0 {
-            f_k.clone() + (f_k.clone() - state.f_prev[k].clone()).mul_scalar(self.config.beta)
-        } else {
-            f_k
-        };
-        // φ_k is already this sweep's, φ_{k+1} still the previous one. Both stay fixed for the
-        // whole step: φ_k's stencil serves every block and trial, and T[f_{k+1}, φ_{k+1}] does
-        // not depend on f_k at all.
-        let sampler_k = bspline.sampler(state.phi[k - 1].clone());
-        let next = next.unwrap_or_else(|| {
-            let coeffs = bspline.coefficients(state.f[k + 1].clone());
-            let sampler = bspline.sampler(state.phi[k].clone());
-            let warped = self.warp_by_blocks(&sampler, coeffs.clone());
-            FrameProducts { coeffs, warped }
-        });
-        // The accepted trials' P x and T[x, φ_k], block by block.
-        let mut own = Some((Vec::new(), Vec::new()));
-
-        let mut blocks = Vec::new();
-        let mut step = FeatureStep {
-            lipschitz: Vec::new(),
-            trials: Vec::new(),
-            dropped: Vec::new(),
-            residual_norm2: Some((0.0, 0.0)),
-        };
-        for (b, block) in self.layout.blocks().iter().enumerate() {
-            let (start, len) = (block.channels.start, block.channels.len());
-            let problem = FeatureProblem {
-                ipalm: self,
-                sampler_k: &sampler_k,
-                prev: state.f[k - 1].clone().narrow(1, start, len),
-                next: next.warped.clone().narrow(1, start, len),
-                steps: state.steps() as f64,
-            };
-            let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
-            let leaf = x_tilde.clone().require_grad();
-            let products = problem.products(leaf.clone());
-            let grads = problem.differentiable(leaf.clone(), &products).backward();
-            let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let mut parts = problem.norms(x_tilde.clone(), &products);
-            parts.push(self.grid.decision_norm2(grad.clone()));
-            let v = read_scalars(&self.grid, parts);
-            let (q_tilde, grad_norm2) = (problem.decision_of((v[0], v[1])), v[2]);
-            if !(q_tilde.is_finite() && grad_norm2.is_finite()) {
-                return Err(Error::NonFinite {
-                    what: format!(
-                        "feature step k = {k}, block {b}: Q = {q_tilde}, |grad Q|^2 = {grad_norm2}"
-                    ),
-                });
-            }
-            let bt = self.config.backtracking;
-            let slack = self.slack();
-            // The residual norms of the last trial: the accepted one's once the search ends.
-            let mut norms = (f64::NAN, f64::NAN);
-            let warped_tilde = products.warped.detach();
-            let search = bt.search(state.l_f[k - 1][b], |l| {
-                let candidate = x_tilde.clone() - grad.clone().mul_scalar(1.0 / l);
-                let trial_products = problem.products(candidate.clone());
-                let mut parts = problem.norms(candidate.clone(), &trial_products);
-                parts.push(
-                    self.grid
-                        .decision_distance2(trial_products.warped.clone(), warped_tilde.clone()),
-                );
-                let v = read_scalars(&self.grid, parts);
-                norms = (v[0], v[1]);
-                let q_new = problem.decision_of(norms);
-                // x_new − x̃ = d = −∇Q/L: ⟨∇Q, d⟩ = −‖∇Q‖²/L, ‖d‖² = ‖∇Q‖²/L². Q is quadratic
-                // in f_k (T is linear in it), so Q(x̃ + d) − Q(x̃) − ⟨∇Q, d⟩ is exactly
-                // scale·(‖T[d, φ_k]‖² + ‖d‖²), with T[d, φ_k] = T[x_new, φ_k] − T[x̃, φ_k]. The
-                // test on that remainder is SPEC §6's test without the difference
-                // Q(x_new) − Q(x̃): near convergence float32 rounding of the warps made that
-                // difference exceed the decrease −‖∇Q‖²/(2L), every trial failed, L doubled
-                // until the decrease fell below float64's resolution of Q and the frame's
-                // features froze for the rest of the level (seen at 64², sweep 48).
-                let norm2 = grad_norm2 / (l * l);
-                let remainder = problem.decision_scale() * (v[2] + norm2);
-                Ok(
-                    if bt.accepts_remainder(q_new, q_tilde, remainder, norm2, l, slack) {
-                        Trial::Accepted((candidate, trial_products))
-                    } else {
-                        Trial::Rejected
-                    },
-                )
-            })?;
-            step.dropped.push(search.accepted.is_none());
-            step.residual_norm2 = match (step.residual_norm2, &search.accepted) {
-                (Some((moved, fixed)), Some(_)) => Some((moved + norms.0, fixed + norms.1)),
-                _ => None,
-            };
-            // A block whose search gave up keeps its current values.
-            blocks.push(match search.accepted {
-                Some((candidate, products)) => {
-                    if let Some((coeffs, warped)) = own.as_mut() {
-                        coeffs.push(products.coeffs);
-                        warped.push(products.warped);
-                    }
-                    candidate
-                }
-                None => {
-                    own = None;
-                    state.f[k].clone().narrow(1, start, len)
-                }
-            });
-            step.lipschitz.push(search.lipschitz);
-            step.trials.push(search.trials);
-        }
-        let own = own.map(|(coeffs, warped)| FrameProducts {
-            coeffs: bspline.join(coeffs),
-            warped: Tensor::cat(warped, 1),
-        });
-        Ok((Tensor::cat(blocks, 1), step, next, own))
-    }
-}
-
-/// `P f_k` and `T[f_k, φ_k]` (`[1, C_tot, H, W]` each) as a step computed them: the feature
-/// step of `k − 1` computes them and the deformation step of `k` starts from them (neither
-/// changes in between), and the accepted trials of `f_k`'s step leave them for the next
-/// sweep's feature step of `k − 1`.
-#[derive(Clone, Debug)]
-pub(super) struct FrameProducts {
-    coeffs: Tensor<4>,
-    warped: Tensor<4>,
 }
 
 /// What a sequential sweep leaves for the next sweep of the same state: for each `k`
@@ -1113,61 +659,5 @@ impl SweepCarry {
     /// Holds `products` for `k`.
     fn put(&mut self, k: usize, products: Option<FrameProducts>) {
         self.products[k] = products;
-    }
-}
-
-/// `Q` restricted to one channel block of `f_k` (SPEC §6 step 3):
-/// `(K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}])`, still divided by `C_tot`.
-struct FeatureProblem<'a> {
-    ipalm: &'a Ipalm,
-    sampler_k: &'a Sampler,
-    /// The block of `f_{k−1}`.
-    prev: Tensor<4>,
-    /// The block of `T[f_{k+1}, φ_{k+1}]`.
-    next: Tensor<4>,
-    steps: f64,
-}
-
-impl FeatureProblem<'_> {
-    /// `P x` and `T[x, φ_k]`.
-    fn products(&self, x: Tensor<4>) -> FrameProducts {
-        let coeffs = self.ipalm.energy.bspline().coefficients(x);
-        let warped = self.sampler_k.sample(coeffs.clone());
-        FrameProducts { coeffs, warped }
-    }
-
-    /// `Q` at `x` from its [`products`](Self::products), differentiable (float32): the data
-    /// terms of the residuals `T[x, φ_k] − f_{k−1}` and `T[f_{k+1}, φ_{k+1}] − x`, each the
-    /// fused squared distance of its two sides (the residuals are never tensors).
-    fn differentiable(&self, x: Tensor<4>, products: &FrameProducts) -> Tensor<1> {
-        let c_tot = self.ipalm.layout.channels();
-        let delta = self.ipalm.energy.params().delta;
-        (data_term_from_warped(products.warped.clone(), self.prev.clone(), c_tot)
-            + data_term_from_warped(self.next.clone(), x, c_tot))
-        .mul_scalar(self.steps / delta)
-    }
-
-    /// The squared norms of the two residuals at `x`, from its products, summed for
-    /// decisions: read back (with any other scalars of the same transfer) and added by
-    /// [`decision_of`](Self::decision_of).
-    fn norms(&self, x: Tensor<4>, products: &FrameProducts) -> Vec<Tensor<1>> {
-        let grid = &self.ipalm.grid;
-        vec![
-            grid.decision_distance2(products.warped.clone(), self.prev.clone()),
-            grid.decision_distance2(self.next.clone(), x),
-        ]
-    }
-
-    /// `Q` from the squared norms of its residuals.
-    fn decision_of(&self, (moved, fixed): (f64, f64)) -> f64 {
-        (moved + fixed) * self.decision_scale()
-    }
-
-    /// `(K/δ) / (2·C_tot·H·W)`: `Q` per unit of squared residual norm.
-    fn decision_scale(&self) -> f64 {
-        let grid = &self.ipalm.grid;
-        let c_tot = self.ipalm.layout.channels() as f64;
-        let delta = self.ipalm.energy.params().delta;
-        self.steps / (delta * 2.0 * c_tot * grid.pixels() as f64)
     }
 }

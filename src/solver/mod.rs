@@ -5,9 +5,10 @@
 //!   rule, used by every step.
 //! - [`prox`]: the linearised data term of a deformation step and its pointwise prox;
 //!   [`prox_op`] its trial fused into one custom op (flex).
-//! - [`ipalm`]: one sweep over the steps `k = 1..K`: deformation and feature blocks, the
-//!   safeguard and its inertia restart; `batched` runs the same steps as three stacked
-//!   blocks ([`ipalm::Schedule`]).
+//! - [`ipalm`]: the level's state and one sweep in either schedule ([`ipalm::Schedule`]):
+//!   the sequential one runs the steps `k = 1..K` one at a time, `batched` as three stacked
+//!   blocks; both take their steps from `steps` (SPEC §6 steps 2 and 3 for any set of `k`
+//!   at once: deformation and feature steps, the safeguard and its inertia restart).
 //! - [`level_run`]: one level as a state machine ([`level_run::LevelRun`]: `init` from
 //!   how its state began, `next_sweep`, `terminate`), the named energy record of a sweep,
 //!   and [`level_run::prolongate`].
@@ -25,3 +26,4 @@ pub mod multilevel;
 pub mod observer;
 pub mod prox;
 pub mod prox_op;
+mod steps;

@@ -1,0 +1,840 @@
+//! The steps of SPEC §6 for any set of `k` at once: step 2 (the deformations `φ_k`) and
+//! step 3 (the features `f_k`). Both schedules take their steps from here, so a rule or a
+//! term is written once: the sequential schedule calls them for one `k` at a time, the
+//! batched one for every `k` (deformations) and for every `k` of one parity (features).
+//!
+//! A call for the steps `ks` stacks what they read into `[n, …]` tensors, item `j` for step
+//! `ks[j]`. Each item keeps its own Lipschitz estimate, backtracking search, safeguard and
+//! inertia restart; the searches run in lockstep (one stacked trial and one read-back per
+//! round, [`Lockstep`]), and a round, a restart and a safeguard doubling evaluate only the
+//! items still undecided: recomputing every `k` for the one still searching made a deep
+//! batched sweep several times the work of a sequential one. With one item every operation
+//! is the one a step of one `k` needs, with no stacking around it.
+//!
+//! Every accept/reject decision compares scalars summed by the grid's decision sums
+//! ([`crate::model::grid::Grid::decision_sum`]), each item's bit for bit what it gives
+//! alone, and each trial reads its scalars back in one transfer.
+
+use burn::tensor::Tensor;
+
+use crate::error::{Error, Result};
+use crate::model::deformation::{admissible_each, min_det_each};
+use crate::model::energy::data::data_term_from_warped;
+use crate::model::energy::regularizer::{mean_density, weighted_density};
+use crate::model::warp::Sampler;
+use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
+use crate::solver::ipalm::{DeformationStep, FeatureStep, Ipalm, LevelState, read_groups};
+use crate::solver::prox::{LinearisedData, pick};
+
+/// Item `i` of a stacked tensor, `[1, …]` (the tensor itself if it holds one item).
+fn item<const D: usize>(t: &Tensor<D>, i: usize) -> Tensor<D> {
+    if t.dims()[0] == 1 {
+        return t.clone();
+    }
+    t.clone().narrow(0, i, 1)
+}
+
+/// Items stacked along dimension 0 (the item itself if there is one).
+fn stack(mut items: Vec<Tensor<4>>) -> Tensor<4> {
+    if items.len() == 1 {
+        return items.pop().expect("one item");
+    }
+    Tensor::cat(items, 0)
+}
+
+/// The indices `i < n` where `keep(i)`.
+fn indices(n: usize, keep: impl Fn(usize) -> bool) -> Vec<usize> {
+    (0..n).filter(|&i| keep(i)).collect()
+}
+
+/// `v[k + offset]` for every `k` of `ks`, stacked.
+fn take(v: &[Tensor<4>], ks: &[usize], offset: isize) -> Tensor<4> {
+    stack(
+        ks.iter()
+            .map(|&k| v[k.checked_add_signed(offset).expect("an index in range")].clone())
+            .collect(),
+    )
+}
+
+/// `P f_k` and `T[f_k, φ_k]` (`[n, C_tot, H, W]` each) as a step computed them: the feature
+/// step of `k − 1` computes them and the deformation step of `k` starts from them (neither
+/// changes in between), and the accepted trials of `f_k`'s step leave them for the next
+/// sweep's feature step of `k − 1` ([`super::ipalm::SweepCarry`]).
+#[derive(Clone, Debug)]
+pub(super) struct FrameProducts {
+    pub(super) coeffs: Tensor<4>,
+    pub(super) warped: Tensor<4>,
+}
+
+/// What the feature steps of `ks` did, item `j` for step `ks[j]`.
+pub(super) struct FeatureSteps {
+    /// `f_new` of each step, `[1, C_tot, H, W]`.
+    pub(super) frames: Vec<Tensor<4>>,
+    /// The record of each step.
+    pub(super) steps: Vec<FeatureStep>,
+    /// `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` of every step, stacked: what the deformation
+    /// steps of `k + 1` start from if nothing changes them first.
+    pub(super) next: FrameProducts,
+    /// `P f_new` and `T[f_new, φ_k]` as the accepted trials computed them, `None` where a
+    /// block gave up.
+    pub(super) own: Vec<Option<FrameProducts>>,
+}
+
+/// The deformation steps of `ks`: the pieces of `K·R[·, a_k]` and `e_k(·)` (SPEC §6 step 2).
+struct Deformations<'a> {
+    ipalm: &'a Ipalm,
+    /// The steps, in `1..=K`; item `j` is step `ks[j]`.
+    ks: Vec<usize>,
+    /// `a_k`, `[n, H, W]`.
+    a: Tensor<3>,
+    /// `P f_k`, `[n, C, H, W]`.
+    coeffs: Tensor<4>,
+    /// `f_{k−1}`, `[n, C, H, W]`.
+    before: Tensor<4>,
+    /// `K`.
+    steps: f64,
+}
+
+/// The safeguard's `e_k(φ)` and the squared residual norm in its data term.
+#[derive(Clone, Copy, Debug)]
+struct LocalEnergy {
+    value: f64,
+    residual_norm2: f64,
+}
+
+/// Deformation steps linearised around their points `φ̃_k` (the extrapolated points, or
+/// `φ_k` after a restart): `S_k(φ̃_k)` summed for decisions, `g_k = ∇S_k(φ̃_k)`, and the
+/// prox of the linearised data terms. Entry `j` belongs to item `items[j]`.
+struct Linearised {
+    items: Vec<usize>,
+    point: Tensor<4>,
+    smooth: Vec<f64>,
+    gradient: Tensor<4>,
+    data: LinearisedData,
+}
+
+impl Linearised {
+    /// The entries `entries` of this linearisation, in that order.
+    fn select(&self, entries: &[usize]) -> Self {
+        Self {
+            items: entries.iter().map(|&j| self.items[j]).collect(),
+            point: pick(&self.point, entries),
+            smooth: entries.iter().map(|&j| self.smooth[j]).collect(),
+            gradient: pick(&self.gradient, entries),
+            data: self.data.select(entries),
+        }
+    }
+
+    /// The entry of item `i`.
+    fn entry_of(&self, i: usize) -> usize {
+        self.items
+            .iter()
+            .position(|&s| s == i)
+            .expect("the item is linearised here")
+    }
+
+    /// `φ_new` of every entry for its trial `L`: the prox at `y = φ̃ − g/L`.
+    fn candidates(&self, l: &[f64]) -> Tensor<4> {
+        if let [l] = l {
+            // One entry: the fused trial where the linearisation was fused.
+            return self
+                .data
+                .candidate(self.point.clone(), self.gradient.clone(), *l);
+        }
+        let like = &self.point;
+        let inverse: Tensor<4> = Tensor::from_data(
+            burn::tensor::TensorData::new(
+                l.iter().map(|l| 1.0 / l).collect::<Vec<f64>>(),
+                [l.len(), 1, 1, 1],
+            ),
+            (&like.device(), like.dtype()),
+        );
+        self.data
+            .prox_each(self.point.clone() - self.gradient.clone() * inverse, l)
+    }
+}
+
+impl Deformations<'_> {
+    /// `a_k · W(J(φ_k))` per pixel of the items `items`, differentiable where `φ` is: the
+    /// summand of `S_k` and of its decision sum.
+    fn density(&self, phi: Tensor<4>, items: &[usize]) -> Tensor<3> {
+        let p = self.ipalm.energy.params();
+        weighted_density(phi, pick(&self.a, items), p.lambda, p.mu)
+    }
+
+    /// `S_k(φ_k) = K·R[φ_k, a_k]` of each item summed for decisions, `[n]`, from
+    /// [`density`](Self::density).
+    fn smooth_decision(&self, density: Tensor<3>) -> Tensor<1> {
+        let grid = &self.ipalm.grid;
+        grid.decision_sum_each(density)
+            .mul_scalar(self.steps / grid.pixels() as f64)
+    }
+
+    /// `(K/δ) / (2·C_tot·H·W)`: the data part of `e_k` per unit of squared residual norm.
+    fn data_scale(&self) -> f64 {
+        let ipalm = self.ipalm;
+        self.steps
+            / (ipalm.energy.params().delta
+                * 2.0
+                * ipalm.layout.channels() as f64
+                * ipalm.grid.pixels() as f64)
+    }
+
+    /// The true local energies `e_k(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` of the
+    /// items `items`, summed for decisions (the safeguard's); `smooth`, when given, holds
+    /// `S_k(φ)` of each as a trial summed it.
+    ///
+    /// # Shapes
+    /// - `phi`: `[items.len(), 2, H, W]`
+    fn local_energies(
+        &self,
+        phi: Tensor<4>,
+        items: &[usize],
+        smooth: Option<Vec<f64>>,
+    ) -> Vec<LocalEnergy> {
+        let warped = self
+            .ipalm
+            .energy
+            .bspline()
+            .interpolate(pick(&self.coeffs, items), phi.clone());
+        self.local_energies_of(phi, warped, items, smooth)
+    }
+
+    /// [`local_energies`](Self::local_energies) with `T[f_k, φ]` already computed.
+    fn local_energies_of(
+        &self,
+        phi: Tensor<4>,
+        warped: Tensor<4>,
+        items: &[usize],
+        smooth: Option<Vec<f64>>,
+    ) -> Vec<LocalEnergy> {
+        let grid = &self.ipalm.grid;
+        let distance = grid.decision_distance2_each(warped, pick(&self.before, items));
+        let (smooth, residual_norm2) = match smooth {
+            Some(smooth) => {
+                let [residual] = read_groups(grid, [distance]);
+                (smooth, residual)
+            }
+            None => {
+                let [smooth, residual] = read_groups(
+                    grid,
+                    [self.smooth_decision(self.density(phi, items)), distance],
+                );
+                (smooth, residual)
+            }
+        };
+        let scale = self.data_scale();
+        smooth
+            .iter()
+            .zip(residual_norm2)
+            .map(|(smooth, residual_norm2)| LocalEnergy {
+                value: smooth + residual_norm2 * scale,
+                residual_norm2,
+            })
+            .collect()
+    }
+
+    /// Linearises the steps of `items` around `point` (SPEC §6 step 2).
+    ///
+    /// # Errors
+    ///
+    /// [`Error::NonFinite`] if some `S_k(φ̃_k)` or its gradient is not finite.
+    ///
+    /// # Shapes
+    /// - `point`: `[items.len(), 2, H, W]`
+    fn linearise_at(&self, point: Tensor<4>, items: &[usize]) -> Result<Linearised> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let leaf = point.clone().detach().require_grad();
+        // One density for the gradient and the decision sums: the same values either way.
+        // The S_k are independent: the gradient of their sum is each one's gradient.
+        let density = self.density(leaf.clone(), items);
+        let grads = mean_density(density.clone())
+            .sum()
+            .mul_scalar(self.steps)
+            .backward();
+        let gradient = leaf
+            .grad(&grads)
+            .expect("the regulariser depends on phi")
+            .autodiff();
+        let [smooth, grad_norm2] = read_groups(
+            grid,
+            [
+                self.smooth_decision(density),
+                grid.decision_norm2_each(gradient.clone()),
+            ],
+        );
+        let bad = (0..items.len()).find(|&j| !(smooth[j].is_finite() && grad_norm2[j].is_finite()));
+        if let Some(j) = bad {
+            return Err(Error::NonFinite {
+                what: format!(
+                    "step k = {}: K·R at the linearisation point is {}, |grad|^2 = {}",
+                    self.ks[items[j]], smooth[j], grad_norm2[j]
+                ),
+            });
+        }
+        let p = ipalm.energy.params();
+        let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
+        let data = LinearisedData::around(
+            grid,
+            ipalm.energy.bspline(),
+            &ipalm.sobel,
+            pick(&self.coeffs, items),
+            pick(&self.before, items),
+            point.clone(),
+            kappa,
+        );
+        Ok(Linearised {
+            items: items.to_vec(),
+            point,
+            smooth,
+            gradient,
+            data,
+        })
+    }
+
+    /// The backtracking searches of SPEC §6 step 2 around `lin`, in lockstep from the
+    /// stored `L_φ,k` and the streaks `m_k` of its items (first trial `0.9^(m+1)·L`): every
+    /// round evaluates one trial `L` per undecided entry as one stacked prox of those only
+    /// and reads back `min det J`, `S`, `⟨g, d⟩` and `‖d‖²` of all of them at once. Entry `j`
+    /// of the result accepts `(φ_new, S_k(φ_new))`, the latter as the test summed it.
+    fn search(
+        &self,
+        lin: &Linearised,
+        stored: &[f64],
+        streak: &[u32],
+    ) -> Result<Vec<Search<(Tensor<4>, f64)>>> {
+        let ipalm = self.ipalm;
+        let grid = &ipalm.grid;
+        let bt = ipalm.config.backtracking;
+        let slack = ipalm.slack();
+        let mut searches = Lockstep::new(
+            lin.items
+                .iter()
+                .map(|&i| Some(SearchRun::from_streak(&bt, stored[i], streak[i])))
+                .collect(),
+        );
+        while let Some(trial) = searches.round() {
+            let entries = indices(lin.items.len(), |j| trial[j].is_some());
+            let l: Vec<f64> = entries.iter().filter_map(|&j| trial[j]).collect();
+            let sub = lin.select(&entries);
+            let candidates = sub.candidates(&l);
+            let d = candidates.clone() - sub.point.clone();
+            let [min_det, smooth, inner, norm2] = read_groups(
+                grid,
+                [
+                    min_det_each(candidates.clone()),
+                    self.smooth_decision(self.density(candidates.clone(), &sub.items)),
+                    grid.decision_dot_each(sub.gradient.clone(), d.clone()),
+                    grid.decision_norm2_each(d),
+                ],
+            );
+            for (e, (&j, &l)) in entries.iter().zip(&l).enumerate() {
+                // The prox fixes the boundary exactly, so admissibility is det J > 0 (a NaN
+                // fails it too).
+                let outcome = if !(min_det[e] > 0.0) {
+                    Trial::Inadmissible
+                } else if bt.accepts(smooth[e], sub.smooth[e], inner[e], norm2[e], l, slack) {
+                    Trial::Accepted((item(&candidates, e), smooth[e]))
+                } else {
+                    Trial::Rejected
+                };
+                searches.record(j, outcome);
+            }
+        }
+        Ok(searches
+            .finish()
+            .into_iter()
+            .map(|s| s.expect("every entry searches"))
+            .collect())
+    }
+}
+
+/// Where one deformation step stands during its safeguard.
+struct Pending {
+    step: DeformationStep,
+    /// The accepted `φ_new` and `S_k(φ_new)` as its trial summed it (`None` where the last
+    /// candidate came from a doubling), `None` once dropped.
+    candidate: Option<(Tensor<4>, Option<f64>)>,
+    /// The `L` the backtracking accepted.
+    accepted: f64,
+    /// The `L` of the safeguard's doublings.
+    doubled: f64,
+    /// `e_k(φ_k)`, once the safeguard evaluated it.
+    current: Option<LocalEnergy>,
+    /// `e_k` of the candidate, once the safeguard evaluated it.
+    energy: Option<LocalEnergy>,
+}
+
+impl Pending {
+    /// Takes what a search found: the first one, or the search after an inertia restart.
+    fn found(&mut self, search: Search<(Tensor<4>, f64)>) {
+        self.step.trials += search.trials;
+        self.step.inadmissible_trials += search.inadmissible;
+        self.candidate = search.accepted.map(|(phi, smooth)| (phi, Some(smooth)));
+        self.accepted = search.lipschitz;
+        self.doubled = search.lipschitz;
+    }
+
+    /// Whether `e_k` of the candidate lies above `e_k(φ_k)` by more than `slack` relative
+    /// (written so that a NaN energy counts as a rise).
+    fn rises(&self, slack: f64) -> bool {
+        let (Some(current), Some(energy)) = (self.current, self.energy) else {
+            return false;
+        };
+        let tolerance = slack * current.value.abs();
+        !(energy.value <= current.value + tolerance)
+    }
+}
+
+impl Ipalm {
+    /// SPEC §6 step 2 for the steps `ks` (in `1..=K`) at once: `φ_new` of each and what
+    /// happened.
+    ///
+    /// `carried`, when given, holds `P f_k` and `T[f_k, φ_k]` of every step (from the
+    /// feature step of `k − 1` in this sweep; neither changed since): the steps start from
+    /// them instead of computing them again, with the same values.
+    ///
+    /// # Shapes
+    /// - `a`: `[ks.len(), H, W]`, the anisotropies `a_k`
+    pub(super) fn deformation_steps(
+        &self,
+        state: &LevelState,
+        ks: &[usize],
+        a: Tensor<3>,
+        carried: Option<FrameProducts>,
+    ) -> Result<Vec<(Tensor<4>, DeformationStep)>> {
+        let n = ks.len();
+        let bspline = self.energy.bspline();
+        let (coeffs, reference_warp) = match carried {
+            Some(FrameProducts { coeffs, warped }) => (coeffs, Some(warped)),
+            None => (bspline.coefficients(take(&state.f, ks, 0)), None),
+        };
+        let problem = Deformations {
+            ipalm: self,
+            ks: ks.to_vec(),
+            a,
+            coeffs,
+            before: take(&state.f, ks, -1),
+            steps: state.steps() as f64,
+        };
+        let phi = take(&state.phi, ks, -1);
+        let stored: Vec<f64> = ks.iter().map(|&k| state.l_phi[k - 1]).collect();
+        let streak: Vec<u32> = ks.iter().map(|&k| state.phi_streak[k - 1]).collect();
+        let (point, extrapolated) = if self.config.beta > 0.0 {
+            let e = phi.clone()
+                + (phi.clone() - take(&state.phi_prev, ks, -1)).mul_scalar(self.config.beta);
+            let ok = admissible_each(&self.grid, e.clone());
+            let point = if ok.iter().all(|&ok| ok) {
+                e
+            } else if !ok.iter().any(|&ok| ok) {
+                phi.clone()
+            } else {
+                stack(
+                    (0..n)
+                        .map(|i| if ok[i] { item(&e, i) } else { item(&phi, i) })
+                        .collect(),
+                )
+            };
+            (point, ok)
+        } else {
+            (phi.clone(), vec![false; n])
+        };
+        let all = indices(n, |_| true);
+        let lin = problem.linearise_at(point, &all)?;
+        let mut pending: Vec<Pending> = streak
+            .iter()
+            .map(|&streak| Pending {
+                step: DeformationStep {
+                    streak,
+                    lipschitz: 0.0,
+                    trials: 0,
+                    inadmissible_trials: 0,
+                    restarted: false,
+                    safeguard_doublings: 0,
+                    dropped: false,
+                    residual_norm2: None,
+                },
+                candidate: None,
+                accepted: 0.0,
+                doubled: 0.0,
+                current: None,
+                energy: None,
+            })
+            .collect();
+        for (p, search) in pending
+            .iter_mut()
+            .zip(problem.search(&lin, &stored, &streak)?)
+        {
+            p.found(search);
+        }
+        if self.config.safeguard {
+            self.safeguard(
+                &problem,
+                &phi,
+                reference_warp,
+                &lin,
+                &extrapolated,
+                &stored,
+                &streak,
+                &mut pending,
+            )?;
+        }
+        Ok(pending
+            .into_iter()
+            .enumerate()
+            .map(|(i, mut p)| {
+                p.step.residual_norm2 = p.energy.or(p.current).map(|e| e.residual_norm2);
+                match p.candidate {
+                    // The doublings answered a linearisation that misled this step, not the
+                    // curvature of S: the next sweep starts from the L the backtracking
+                    // accepted.
+                    Some((candidate, _)) => {
+                        p.step.lipschitz = p.accepted;
+                        (candidate, p.step)
+                    }
+                    None => {
+                        // SPEC §6, *Giving up*: keep φ_k and the L the step started from.
+                        p.step.dropped = true;
+                        p.step.lipschitz = stored[i];
+                        (item(&phi, i), p.step)
+                    }
+                }
+            })
+            .collect())
+    }
+
+    /// SPEC §6's safeguard on the accepted deformation steps: compare `e_k` of each
+    /// candidate with `e_k(φ_k)`; on a rise restart the inertia of that `k` (search again
+    /// around `φ_k`), then double its `L` while `e_k` still rises, up to `safeguard_max`
+    /// doublings before the step is dropped.
+    #[allow(clippy::too_many_arguments)]
+    fn safeguard(
+        &self,
+        problem: &Deformations,
+        phi: &Tensor<4>,
+        reference_warp: Option<Tensor<4>>,
+        lin: &Linearised,
+        extrapolated: &[bool],
+        stored: &[f64],
+        streak: &[u32],
+        pending: &mut [Pending],
+    ) -> Result<()> {
+        let n = pending.len();
+        let slack = self.slack();
+        let live = indices(n, |i| pending[i].candidate.is_some());
+        if live.is_empty() {
+            return Ok(());
+        }
+        // `T[f_k, φ_k]` by blocks, as a carried one was: the safeguard's reference value is
+        // then the same whichever way it came.
+        let reference_warp = match reference_warp {
+            Some(warped) => pick(&warped, &live),
+            None => {
+                let sampler = self.energy.bspline().sampler(pick(phi, &live));
+                self.warp_by_blocks(&sampler, pick(&problem.coeffs, &live))
+            }
+        };
+        let current = problem.local_energies_of(pick(phi, &live), reference_warp, &live, None);
+        for (&i, e) in live.iter().zip(current) {
+            pending[i].current = Some(e);
+        }
+        // `e_k` of the candidates of the items `items`, each from its trial's `S_k` where it
+        // has one.
+        let evaluate = |pending: &mut [Pending], items: &[usize]| {
+            let (candidates, smooth): (Vec<Tensor<4>>, Vec<Option<f64>>) = items
+                .iter()
+                .map(|&i| pending[i].candidate.clone().expect("a candidate"))
+                .unzip();
+            let smooth = smooth.into_iter().collect::<Option<Vec<f64>>>();
+            let energies = problem.local_energies(stack(candidates), items, smooth);
+            for (&i, e) in items.iter().zip(energies) {
+                pending[i].energy = Some(e);
+            }
+        };
+        evaluate(pending, &live);
+        // Restart the inertia of every k whose extrapolated step raised e_k: as L grows the
+        // prox tends to φ̃, which for the extrapolated point may lie above e_k(φ_k); around
+        // φ_k it tends to φ_k.
+        let restart = indices(n, |i| {
+            pending[i].candidate.is_some() && pending[i].rises(slack) && extrapolated[i]
+        });
+        let mut restarted_lin = None;
+        if !restart.is_empty() {
+            let lin = problem.linearise_at(pick(phi, &restart), &restart)?;
+            for (&i, search) in restart.iter().zip(problem.search(&lin, stored, streak)?) {
+                pending[i].step.restarted = true;
+                pending[i].found(search);
+                pending[i].energy = None;
+            }
+            let again = indices(n, |i| {
+                pending[i].step.restarted && pending[i].candidate.is_some()
+            });
+            if !again.is_empty() {
+                evaluate(pending, &again);
+            }
+            restarted_lin = Some(lin);
+        }
+        // Double L while e_k still rises, each k on the linearisation of its last search.
+        let mut doubling: Vec<bool> = (0..n)
+            .map(|i| pending[i].candidate.is_some() && pending[i].rises(slack))
+            .collect();
+        loop {
+            for (i, p) in pending.iter_mut().enumerate() {
+                if !doubling[i] {
+                    continue;
+                }
+                if p.step.safeguard_doublings == self.config.safeguard_max {
+                    p.candidate = None;
+                    p.energy = None;
+                    doubling[i] = false;
+                    continue;
+                }
+                p.step.safeguard_doublings += 1;
+                p.doubled *= 2.0;
+            }
+            let items = indices(n, |i| doubling[i]);
+            if items.is_empty() {
+                return Ok(());
+            }
+            let (again, fresh): (Vec<usize>, Vec<usize>) =
+                items.iter().partition(|&&i| pending[i].step.restarted);
+            for (around, group) in [(Some(lin), fresh), (restarted_lin.as_ref(), again)] {
+                if group.is_empty() {
+                    continue;
+                }
+                let around = around.expect("a restarted step has its linearisation");
+                let entries: Vec<usize> = group.iter().map(|&i| around.entry_of(i)).collect();
+                let l: Vec<f64> = group.iter().map(|&i| pending[i].doubled).collect();
+                let from = around.select(&entries).candidates(&l);
+                for (j, &i) in group.iter().enumerate() {
+                    pending[i].candidate = Some((item(&from, j), None));
+                }
+            }
+            evaluate(pending, &items);
+            for &i in &items {
+                doubling[i] = pending[i].rises(slack);
+            }
+        }
+    }
+
+    /// `T[c, φ]` for the coefficients `c` of whole frames (`[n, C_tot, H, W]`), sampled
+    /// block by block as the feature steps' trials sample it.
+    ///
+    /// A sampler's result for a channel can depend on how many channels it reads at once
+    /// (the fused kernels take a planar or a channels-last path, the composed one a scalar or
+    /// a row gather; their sums round differently). A `T[f_k, φ_k]` carried from a trial and
+    /// one computed afresh must be the same values (SPEC §6's decisions compare them), so
+    /// every such warp of a whole frame goes through here. The prefilter does not have this
+    /// problem: each channel's lines are solved alike whatever the tensor holds.
+    fn warp_by_blocks(&self, sampler: &Sampler, coeffs: Tensor<4>) -> Tensor<4> {
+        let blocks = self.layout.blocks();
+        if blocks.len() == 1 {
+            return sampler.sample(coeffs);
+        }
+        let parts = blocks
+            .iter()
+            .map(|block| {
+                let (start, len) = (block.channels.start, block.channels.len());
+                sampler.sample(coeffs.clone().narrow(1, start, len))
+            })
+            .collect();
+        Tensor::cat(parts, 1)
+    }
+
+    /// SPEC §6 step 3 for the frames `ks` (in `1..K`, no two adjacent) at once, block by
+    /// block: `Q_k(x) = (K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}])` restricted to
+    /// the block's channels (still divided by `C_tot`), one gradient step per trial `L`.
+    ///
+    /// `next`, when given, holds `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` of every step (the
+    /// previous sweep's feature step of `k + 1` computed them; neither has changed since);
+    /// otherwise they are computed.
+    pub(super) fn feature_steps(
+        &self,
+        state: &LevelState,
+        ks: &[usize],
+        next: Option<FrameProducts>,
+    ) -> Result<FeatureSteps> {
+        let n = ks.len();
+        let grid = &self.grid;
+        let bspline = self.energy.bspline();
+        let bt = self.config.backtracking;
+        let slack = self.slack();
+        let c_tot = self.layout.channels();
+        let delta = self.energy.params().delta;
+        let steps = state.steps() as f64;
+        let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
+        let f_k = take(&state.f, ks, 0);
+        let f_tilde = if self.config.beta > 0.0 {
+            f_k.clone() + (f_k.clone() - take(&state.f_prev, ks, 0)).mul_scalar(self.config.beta)
+        } else {
+            f_k.clone()
+        };
+        // φ_k (stored at k − 1) is already this sweep's, φ_{k+1} (at k) still the previous
+        // one. Both stay fixed for the whole step: φ_k's stencil serves every block and
+        // trial, and T[f_{k+1}, φ_{k+1}] does not depend on f_k at all.
+        let phis = take(&state.phi, ks, -1);
+        let sampler = bspline.sampler(phis.clone());
+        let next = next.unwrap_or_else(|| {
+            let coeffs = bspline.coefficients(take(&state.f, ks, 1));
+            let sampler = bspline.sampler(take(&state.phi, ks, 0));
+            let warped = self.warp_by_blocks(&sampler, coeffs.clone());
+            FrameProducts { coeffs, warped }
+        });
+        let before = take(&state.f, ks, -1);
+
+        let mut records: Vec<FeatureStep> = (0..n)
+            .map(|_| FeatureStep {
+                lipschitz: Vec::new(),
+                trials: Vec::new(),
+                dropped: Vec::new(),
+                residual_norm2: Some((0.0, 0.0)),
+            })
+            .collect();
+        // Each item's blocks of f_new, and the accepted trials' P x and T[x, φ_k] block by
+        // block (`None` once a block gave up).
+        let mut blocks: Vec<Vec<Tensor<4>>> = vec![Vec::new(); n];
+        let mut own: Vec<Option<(Vec<Tensor<4>>, Vec<Tensor<4>>)>> =
+            vec![Some((Vec::new(), Vec::new())); n];
+        for (b, block) in self.layout.blocks().iter().enumerate() {
+            let (start, len) = (block.channels.start, block.channels.len());
+            let prev = before.clone().narrow(1, start, len);
+            let next_block = next.warped.clone().narrow(1, start, len);
+            let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
+            let leaf = x_tilde.clone().require_grad();
+            let warped = sampler.sample(bspline.coefficients(leaf.clone()));
+            // The data terms of the residuals T[x, φ_k] − f_{k−1} and T[f_{k+1}, φ_{k+1}] − x,
+            // each the fused squared distance of its two sides (the residuals are never
+            // tensors). The Q_k are independent: the gradient of their sum is each one's.
+            let q = (data_term_from_warped(warped.clone(), prev.clone(), c_tot)
+                + data_term_from_warped(next_block.clone(), leaf.clone(), c_tot))
+            .sum()
+            .mul_scalar(steps / delta);
+            let grads = q.backward();
+            let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
+            let warped_tilde = warped.detach();
+            let [moved, fixed, grad_norm2] = read_groups(
+                grid,
+                [
+                    grid.decision_distance2_each(warped_tilde.clone(), prev.clone()),
+                    grid.decision_distance2_each(next_block.clone(), x_tilde.clone()),
+                    grid.decision_norm2_each(grad.clone()),
+                ],
+            );
+            let q_tilde: Vec<f64> = (0..n).map(|i| (moved[i] + fixed[i]) * scale).collect();
+            if let Some(i) =
+                (0..n).find(|&i| !(q_tilde[i].is_finite() && grad_norm2[i].is_finite()))
+            {
+                return Err(Error::NonFinite {
+                    what: format!(
+                        "feature step k = {}, block {b}: Q = {}, |grad Q|^2 = {}",
+                        ks[i], q_tilde[i], grad_norm2[i]
+                    ),
+                });
+            }
+            // Each item's residual norms of its last trial: the accepted one's once decided.
+            let mut norms = vec![(f64::NAN, f64::NAN); n];
+            let mut searches = Lockstep::new(
+                ks.iter()
+                    .map(|&k| Some(SearchRun::new(&bt, state.l_f[k - 1][b])))
+                    .collect(),
+            );
+            while let Some(trial) = searches.round() {
+                let items = indices(n, |i| trial[i].is_some());
+                let l: Vec<f64> = items.iter().filter_map(|&i| trial[i]).collect();
+                let candidates = match l[..] {
+                    [l] => pick(&x_tilde, &items) - pick(&grad, &items).mul_scalar(1.0 / l),
+                    _ => {
+                        let inverse =
+                            grid.tensor(l.iter().map(|l| 1.0 / l).collect(), [l.len(), 1, 1, 1]);
+                        pick(&x_tilde, &items) - pick(&grad, &items) * inverse
+                    }
+                };
+                let coeffs = bspline.coefficients(candidates.clone());
+                let trial_warped = if items.len() == n {
+                    sampler.sample(coeffs.clone())
+                } else {
+                    bspline.sampler(pick(&phis, &items)).sample(coeffs.clone())
+                };
+                let [to_prev, to_next, moved] = read_groups(
+                    grid,
+                    [
+                        grid.decision_distance2_each(trial_warped.clone(), pick(&prev, &items)),
+                        grid.decision_distance2_each(pick(&next_block, &items), candidates.clone()),
+                        grid.decision_distance2_each(
+                            trial_warped.clone(),
+                            pick(&warped_tilde, &items),
+                        ),
+                    ],
+                );
+                for (j, (&i, &l)) in items.iter().zip(&l).enumerate() {
+                    norms[i] = (to_prev[j], to_next[j]);
+                    let q_new = (to_prev[j] + to_next[j]) * scale;
+                    // x_new − x̃ = d = −∇Q/L: ⟨∇Q, d⟩ = −‖∇Q‖²/L, ‖d‖² = ‖∇Q‖²/L². Q is
+                    // quadratic in f_k (T is linear in it), so Q(x̃ + d) − Q(x̃) − ⟨∇Q, d⟩ is
+                    // exactly scale·(‖T[d, φ_k]‖² + ‖d‖²), with T[d, φ_k] = T[x_new, φ_k] −
+                    // T[x̃, φ_k]. The test on that remainder is SPEC §6's test without the
+                    // difference Q(x_new) − Q(x̃): near convergence float32 rounding of the
+                    // warps made that difference exceed the decrease −‖∇Q‖²/(2L), every
+                    // trial failed, L doubled until the decrease fell below float64's
+                    // resolution of Q and the frame's features froze for the rest of the
+                    // level (seen at 64², sweep 48).
+                    let d2 = grad_norm2[i] / (l * l);
+                    let remainder = scale * (moved[j] + d2);
+                    let outcome =
+                        if bt.accepts_remainder(q_new, q_tilde[i], remainder, d2, l, slack) {
+                            Trial::Accepted((
+                                item(&candidates, j),
+                                item(&coeffs, j),
+                                item(&trial_warped, j),
+                            ))
+                        } else {
+                            Trial::Rejected
+                        };
+                    searches.record(i, outcome);
+                }
+            }
+            for (i, search) in searches.finish().into_iter().enumerate() {
+                let search = search.expect("every frame searches");
+                let record = &mut records[i];
+                record.dropped.push(search.accepted.is_none());
+                record.lipschitz.push(search.lipschitz);
+                record.trials.push(search.trials);
+                record.residual_norm2 = match (record.residual_norm2, &search.accepted) {
+                    (Some((moved, fixed)), Some(_)) => {
+                        Some((moved + norms[i].0, fixed + norms[i].1))
+                    }
+                    _ => None,
+                };
+                // A block whose search gave up keeps its current values.
+                blocks[i].push(match search.accepted {
+                    Some((candidate, coeffs, warped)) => {
+                        if let Some((c, w)) = own[i].as_mut() {
+                            c.push(coeffs);
+                            w.push(warped);
+                        }
+                        candidate
+                    }
+                    None => {
+                        own[i] = None;
+                        item(&f_k, i).narrow(1, start, len)
+                    }
+                });
+            }
+        }
+        Ok(FeatureSteps {
+            frames: blocks.into_iter().map(|b| Tensor::cat(b, 1)).collect(),
+            steps: records,
+            next,
+            own: own
+                .into_iter()
+                .map(|o| {
+                    o.map(|(coeffs, warped)| FrameProducts {
+                        coeffs: bspline.join(coeffs),
+                        warped: Tensor::cat(warped, 1),
+                    })
+                })
+                .collect(),
+        })
+    }
+}
