@@ -101,6 +101,14 @@ impl ChainJob {
                 format!("3 to {MAX_IMAGES} for a chain (two images are one morph)"),
             ));
         }
+        if config.points.is_some() {
+            return Err(Error::invalid(
+                "points",
+                "landmarks for a chain",
+                "landmarks for one pair of images: a chain does not take them yet (morph \
+                 each pair with its own --points)",
+            ));
+        }
         let pair = |config: MorphConfig, i: usize| {
             MorphJob::prepare(
                 config,

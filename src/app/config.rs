@@ -10,6 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::backend::Backend;
 use crate::error::{Error, Result};
 use crate::io::animation::{DEFAULT_QUALITY, Playback, VideoFormat};
+use crate::io::points::PointPair;
 use crate::model::feature_model::DeepConfig;
 use crate::model::params::EnergyParams;
 use crate::solver::multilevel::MultilevelConfig;
@@ -187,6 +188,10 @@ pub struct MorphConfig {
     /// Refuse to start when the estimated peak memory exceeds this many GiB; `None`: the
     /// memory available now (CPU backends), no limit on wgpu.
     pub max_memory_gib: Option<f64>,
+    /// SPEC §11's landmark pairs (`--points`), each point in its own input's pixels; `None`:
+    /// the path finds its correspondences through the energy alone.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub points: Option<Vec<PointPair>>,
 }
 
 impl Default for MorphConfig {
@@ -203,6 +208,7 @@ impl Default for MorphConfig {
             animation_frames: None,
             init: None,
             max_memory_gib: None,
+            points: None,
         }
     }
 }
@@ -354,6 +360,10 @@ pub struct RunRecord {
     pub working_size: [usize; 2],
     /// The settings.
     pub config: MorphConfig,
+    /// The landmark pairs on the working grid (`[x, y]` in working pixels), as the solver
+    /// used them (SPEC §11); absent without landmarks.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub landmarks: Option<Vec<PointPair>>,
     /// How it ended.
     pub outcome: Outcome,
 }

@@ -8,11 +8,12 @@ use burn::tensor::{Device, Tensor};
 use crate::app::config::{Inputs, RunRecord};
 use crate::error::{Error, Result};
 use crate::eval::folder::MorphFolder;
-use crate::eval::metrics::Metrics;
+use crate::eval::metrics::{LandmarkResiduals, Metrics};
 use crate::eval::perceptual::feature_path;
 use crate::features::vgg::Vgg19;
 use crate::io::outputs::CONFIG;
 use crate::io::truth::Correspondence;
+use crate::model::grid::host_values;
 
 /// What [`evaluate`] measured.
 pub struct Evaluation {
@@ -87,11 +88,45 @@ pub fn evaluate(
         composed.clone(),
         truth.as_ref().map(|(t, name)| (t, name.as_str())),
     )?;
+    metrics.landmarks = landmark_residuals(&record, composed.clone(), (h, w))?;
     if let Some(weights) = vgg19 {
         let vgg = Vgg19::load(weights, device)?;
         metrics.feature_path = Some(feature_path(&vgg, &folder.grid, &folder.frames)?);
     }
     Ok(Evaluation { metrics, composed })
+}
+
+/// The landmark residuals `|Φ(p_i) − q_i|` of a run whose `record` has landmarks, with
+/// `composed` the map `Φ` (`[1, 2, H, W]`) on its `(H, W)` grid: `None` without landmarks.
+/// The landmarks are recorded on the working grid; a run stopped on a coarser level maps
+/// them there by SPEC §7's align-corners rule.
+///
+/// # Errors
+///
+/// If `composed` holds a NaN.
+pub(crate) fn landmark_residuals(
+    record: &RunRecord,
+    composed: Tensor<4>,
+    (h, w): (usize, usize),
+) -> Result<Option<LandmarkResiduals>> {
+    let Some(pairs) = &record.landmarks else {
+        return Ok(None);
+    };
+    let [wh, ww] = record.working_size;
+    let scale = |v: f64, to: usize, from: usize| {
+        if from > 1 {
+            v * (to - 1) as f64 / (from - 1) as f64
+        } else {
+            v
+        }
+    };
+    let on_grid = |[x, y]: [f64; 2]| [scale(y, h, wh), scale(x, w, ww)];
+    let pairs: Vec<_> = pairs.iter().map(|p| (on_grid(p.a), on_grid(p.b))).collect();
+    Ok(Some(LandmarkResiduals::of(
+        &host_values(composed)?,
+        (h, w),
+        &pairs,
+    )))
 }
 
 /// Refuses a truth whose size is not the first input's (see [`evaluate`]).

@@ -12,6 +12,7 @@ use image::RgbImage as Rgb8;
 
 use crate::app::config::{Inputs, MorphConfig, Outcome, RunRecord};
 use crate::app::demo::demo_pair;
+use crate::app::evaluate::landmark_residuals;
 use crate::app::memory;
 use crate::backend::Precision;
 use crate::error::{Error, Result};
@@ -28,6 +29,8 @@ use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{
     CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations, write_frames,
 };
+use crate::io::points::{landmarks_on_working_grid, pairs_of};
+use crate::model::energy::landmarks::Landmarks;
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
 use crate::model::inbetween::Clip;
@@ -43,6 +46,8 @@ pub struct MorphJob {
     images: (RgbImage, RgbImage),
     notes: Vec<String>,
     estimate: u64,
+    /// SPEC §11's landmarks on the working grid, from [`MorphConfig::points`].
+    landmarks: Option<Landmarks>,
     estimate_time: bool,
     resume: Option<PathBuf>,
     /// A fault for the tests (feature `check`): `None` in every other build.
@@ -95,9 +100,13 @@ impl MorphJob {
             )
         };
         let mut notes = Vec::new();
-        let (inputs, images, estimate) = match inputs {
+        let (inputs, images, estimate, sizes) = match inputs {
             Inputs::Files { a, b } => {
                 let (image_a, image_b) = (RgbImage::load(&a)?, RgbImage::load(&b)?);
+                let sizes = (
+                    (image_a.height(), image_a.width()),
+                    (image_b.height(), image_b.width()),
+                );
                 let (h, w) = config
                     .size
                     .resolve(image_a.height(), image_a.width(), multiple)?;
@@ -119,7 +128,7 @@ impl MorphJob {
                     a: absolute(a),
                     b: absolute(b),
                 };
-                (inputs, images, estimate)
+                (inputs, images, estimate, sizes)
             }
             Inputs::Demo => {
                 let side = match config.size {
@@ -129,18 +138,41 @@ impl MorphJob {
                 let (h, w) = config.size.resolve(side, side, multiple)?;
                 let estimate = check_memory(h, w)?;
                 let (a, b) = demo_pair(h.max(w));
-                ((Inputs::Demo), (a.resized(h, w), b.resized(h, w)), estimate)
+                let sizes = ((a.height(), a.width()), (b.height(), b.width()));
+                (
+                    (Inputs::Demo),
+                    (a.resized(h, w), b.resized(h, w)),
+                    estimate,
+                    sizes,
+                )
             }
         };
         if let Some(dir) = &config.init {
             check_draft(dir, &config, images.0.height(), images.0.width())?;
         }
+        let working = (images.0.height(), images.0.width());
+        let landmarks = match &config.points {
+            Some(points) => {
+                let landmarks = landmarks_on_working_grid(points, sizes.0, sizes.1, working)?;
+                for (i, j) in landmarks.crossings() {
+                    notes.push(format!(
+                        "warning: the straight paths of landmark pairs {} and {} meet: a \
+                         diffeomorphic path cannot follow both exactly",
+                        i + 1,
+                        j + 1
+                    ));
+                }
+                Some(landmarks)
+            }
+            None => None,
+        };
         Ok(Self {
             config,
             inputs,
             images,
             notes,
             estimate,
+            landmarks,
             estimate_time: false,
             resume: None,
             inject_nonfinite: None,
@@ -272,6 +304,9 @@ impl MorphJob {
             None => FeatureModel::Rgb,
         };
         let mut driver = Multilevel::new(self.config.solver)?;
+        if let Some(landmarks) = &self.landmarks {
+            driver = driver.with_landmarks(landmarks.clone());
+        }
         if let Some(dir) = &self.config.init {
             let folder = MorphFolder::read(dir, &device)?;
             let frames = folder
@@ -341,6 +376,7 @@ impl MorphResult {
             inputs: job.inputs.clone(),
             working_size: [h, w],
             config: job.config.clone(),
+            landmarks: job.landmarks.as_ref().map(pairs_of),
             outcome: Outcome {
                 termination: self.morph.termination.to_string(),
                 grid: [self.morph.grid.height(), self.morph.grid.width()],
@@ -412,13 +448,16 @@ impl MorphResult {
         save_checkpoint(dir, &self.morph)?;
         let csv = self.energy.to_csv();
         write_atomically(&dir.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
-        let json = serde_json::to_vec_pretty(&self.record(job)).expect("records serialise");
+        let record = self.record(job);
+        let json = serde_json::to_vec_pretty(&record).expect("records serialise");
         write_atomically(&dir.join(CONFIG), |w| w.write_all(&json))?;
         let device = job.config.backend.device_for(Precision::F32)?;
         let folder = MorphFolder::read(dir, &device)?;
         let composed = folder.composed();
         save_composed(dir, composed.clone())?;
-        let mut metrics = folder.metrics(composed, None)?;
+        let mut metrics = folder.metrics(composed.clone(), None)?;
+        let grid = (folder.grid.height(), folder.grid.width());
+        metrics.landmarks = landmark_residuals(&record, composed, grid)?;
         // The deep model's network again (it is not kept through the solve, for memory);
         // should its file have gone meanwhile, the morph is still written, without these.
         if let Some(deep) = &job.config.deep {

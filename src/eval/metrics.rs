@@ -123,6 +123,12 @@ pub struct LevelEnergy {
     pub data: f64,
     /// `data / E`: how much of the morph is cross-fading rather than transport.
     pub data_share: f64,
+    /// SPEC §11's landmark term `E_lm` (0 without landmarks).
+    #[serde(default)]
+    pub landmarks: f64,
+    /// `E_lm / E`.
+    #[serde(default)]
+    pub landmark_share: f64,
 }
 
 /// The last record of every level of an energy log (whose parts already carry the factors
@@ -139,6 +145,12 @@ pub fn level_energies(records: &[EnergyRecord]) -> Vec<LevelEnergy> {
             data: r.data,
             data_share: if r.energy > 0.0 {
                 r.data / r.energy
+            } else {
+                0.0
+            },
+            landmarks: r.landmarks,
+            landmark_share: if r.energy > 0.0 {
+                r.landmarks / r.energy
             } else {
                 0.0
             },
@@ -325,6 +337,56 @@ pub struct Metrics {
     /// The ground-truth file the endpoint error was measured against.
     #[serde(skip_serializing_if = "Option::is_none", default)]
     pub truth: Option<String>,
+    /// How far `Φ` carries each landmark of A from its partner in B (SPEC §11): morphs with
+    /// `--points`.
+    #[serde(skip_serializing_if = "Option::is_none", default)]
+    pub landmarks: Option<LandmarkResiduals>,
+}
+
+/// `|Φ(p_i) − q_i|` over the landmark pairs, in working pixels (SPEC §11).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LandmarkResiduals {
+    /// `N`.
+    pub count: usize,
+    /// Mean residual.
+    pub mean: f64,
+    /// Largest residual.
+    pub max: f64,
+    /// Each pair's residual, in the order given.
+    pub each: Vec<f64>,
+}
+
+impl LandmarkResiduals {
+    /// The residuals of the pairs `(p_i, q_i)` (`[row, col]` on the grid of `phi`) under the
+    /// map `phi` (`[2, H, W]` row-major host values, pixel units), evaluated between nodes
+    /// by bilinear interpolation as SPEC §11 evaluates `φ_k`.
+    pub fn of(phi: &[f64], (h, w): (usize, usize), pairs: &[([f64; 2], [f64; 2])]) -> Self {
+        let each: Vec<f64> = pairs
+            .iter()
+            .map(|(p, q)| {
+                let r = p[0].clamp(0.0, (h - 1) as f64);
+                let c = p[1].clamp(0.0, (w - 1) as f64);
+                let (r0, c0) = (
+                    (r.floor() as usize).min(h.saturating_sub(2)),
+                    (c.floor() as usize).min(w.saturating_sub(2)),
+                );
+                let (fr, fc) = (r - r0 as f64, c - c0 as f64);
+                let at = |axis: usize| {
+                    let v = |i: usize, j: usize| phi[axis * h * w + i * w + j];
+                    let (r1, c1) = ((r0 + 1).min(h - 1), (c0 + 1).min(w - 1));
+                    (1.0 - fr) * ((1.0 - fc) * v(r0, c0) + fc * v(r0, c1))
+                        + fr * ((1.0 - fc) * v(r1, c0) + fc * v(r1, c1))
+                };
+                (at(0) - q[0]).hypot(at(1) - q[1])
+            })
+            .collect();
+        Self {
+            count: each.len(),
+            mean: each.iter().sum::<f64>() / each.len().max(1) as f64,
+            max: each.iter().copied().fold(0.0, f64::max),
+            each,
+        }
+    }
 }
 
 impl Metrics {
@@ -370,6 +432,7 @@ impl Metrics {
             feature_path: None,
             endpoint_error,
             truth: truth.map(|(_, name)| name.to_string()),
+            landmarks: None,
         })
     }
 }
@@ -441,6 +504,13 @@ impl std::fmt::Display for Metrics {
                 "path in VGG19 feature space: length {:.4}, variance {:.3e}, relative std \
                  {:.3} (cross-fade: length {:.4}, relative std {:.3})",
                 m.length, m.variance, m.relative_std, c.length, c.relative_std
+            )?;
+        }
+        if let Some(l) = &self.landmarks {
+            writeln!(
+                f,
+                "landmarks |Phi(p) - q|: mean {:.3} px, max {:.3} px over {} pairs",
+                l.mean, l.max, l.count
             )?;
         }
         if let Some(e) = &self.endpoint_error {
@@ -538,6 +608,7 @@ mod tests {
             drops_phi: 0,
             drops_f: 0,
             stop: None,
+            landmarks: 0.0,
         };
         let records = [
             record(0, 0, 9.0, 4.0, 5.0),

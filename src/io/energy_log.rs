@@ -44,6 +44,9 @@ pub struct EnergyRecord {
     pub drops_f: usize,
     /// On a level's last sweep: why the level stopped there.
     pub stop: Option<LevelStop>,
+    /// SPEC §11's landmark term `E_lm` (the CSV's `E_lm`; 0 without landmarks and in logs
+    /// of earlier versions).
+    pub landmarks: f64,
 }
 
 /// Collects an [`EnergyRecord`] per sweep.
@@ -70,7 +73,7 @@ impl EnergyLog {
     /// The log as CSV, with a header line. Lipschitz constants are `;`-separated lists.
     pub fn to_csv(&self) -> String {
         let mut out = String::from(
-            "level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds,restarts,drops_phi,drops_f,stop,m_phi\n",
+            "level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds,restarts,drops_phi,drops_f,stop,m_phi,E_lm\n",
         );
         let list = |v: &[f64]| {
             v.iter()
@@ -81,7 +84,7 @@ impl EnergyLog {
         for r in &self.records {
             let _ = writeln!(
                 out,
-                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3},{},{},{},{},{}",
+                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3},{},{},{},{},{},{:.9e}",
                 r.level,
                 r.height,
                 r.width,
@@ -100,15 +103,16 @@ impl EnergyLog {
                     .iter()
                     .map(u32::to_string)
                     .collect::<Vec<_>>()
-                    .join(";")
+                    .join(";"),
+                r.landmarks
             );
         }
         out
     }
 
-    /// Parses what [`to_csv`](Self::to_csv) wrote (also the 10- and 14-column files of
-    /// earlier versions, without the restart and drop counts and the stop reasons, or
-    /// without the streaks).
+    /// Parses what [`to_csv`](Self::to_csv) wrote (also the 10-, 14- and 15-column files of
+    /// earlier versions, without the restart and drop counts and the stop reasons, without
+    /// the streaks, or without `E_lm`).
     ///
     /// # Errors
     ///
@@ -130,7 +134,7 @@ impl EnergyLog {
             .map(|(i, line)| {
                 let bad = || format!("line {}: cannot parse `{line}`", i + 2);
                 let cols: Vec<&str> = line.split(',').collect();
-                if ![10, 14, 15].contains(&cols.len()) {
+                if ![10, 14, 15, 16].contains(&cols.len()) {
                     return Err(bad());
                 }
                 let int = |c: &str| c.parse::<usize>().map_err(|_| bad());
@@ -166,6 +170,7 @@ impl EnergyLog {
                                 .collect::<std::result::Result<_, _>>()
                         })
                         .map_err(|_| bad())?,
+                    landmarks: cols.get(15).map_or(Ok(0.0), |c| num(c))?,
                 })
             })
             .collect::<std::result::Result<_, _>>()?;
@@ -207,6 +212,7 @@ impl Observer for EnergyLog {
             drops_phi: e.report.map_or(0, |r| r.deformation_drops()),
             drops_f: e.report.map_or(0, |r| r.feature_drops()),
             stop: e.stop,
+            landmarks: e.landmarks,
         });
     }
 }

@@ -22,4 +22,5 @@ pub mod images;
 pub mod mp4;
 pub mod output_folder;
 pub mod outputs;
+pub mod points;
 pub mod truth;

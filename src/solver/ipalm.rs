@@ -13,6 +13,7 @@
 use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
+use crate::model::energy::landmarks::LandmarkTerm;
 use crate::model::energy::path::{EnergyValue, PathEnergy, StepEnergies};
 use crate::model::energy::regularizer::weighted_density;
 use crate::model::grid::to_host;
@@ -369,6 +370,8 @@ pub struct Ipalm {
     pub(super) layout: FeatureLayout,
     pub(super) sobel: Sobel,
     pub(super) config: IpalmConfig,
+    /// SPEC §11's landmark term on this level, part of every `S_k` and `E`.
+    pub(super) landmarks: Option<LandmarkTerm>,
 }
 
 /// Several `[1]` tensors read back from the device in one transfer, as float64 where the
@@ -426,7 +429,20 @@ impl Ipalm {
             sobel: Sobel::new(grid),
             layout,
             config,
+            landmarks: None,
         })
+    }
+
+    /// The solver with SPEC §11's landmark term `term` (on this level's grid, for its `K`)
+    /// in the smooth part of every deformation step and in `E`.
+    pub fn with_landmarks(mut self, term: LandmarkTerm) -> Self {
+        self.landmarks = Some(term);
+        self
+    }
+
+    /// The landmark term, if any.
+    pub fn landmarks(&self) -> Option<&LandmarkTerm> {
+        self.landmarks.as_ref()
     }
 
     /// The path energy of this level.
@@ -461,11 +477,15 @@ impl Ipalm {
     /// on a deep 256² path (67 channels) this read 0.23 % below the float64 sum of the same
     /// residuals; the driver logs [`energy_after`](Self::energy_after).
     pub fn energy(&self, state: &LevelState) -> EnergyValue {
-        self.energy.value(
+        let mut value = self.energy.value(
             state.frames(),
             state.deformations(),
             self.anisotropies(state),
-        )
+        );
+        if let Some(term) = &self.landmarks {
+            value.total = value.total + term.energy(state.deformations());
+        }
+        value
     }
 
     /// `E` of `state` after a sweep by steps, in float64 (SPEC §10: every `a_k` recomputed
@@ -509,7 +529,14 @@ impl Ipalm {
                     .residual_norms(grid, &state.f, &state.phi, &missing),
             );
         }
+        if let Some(term) = &self.landmarks {
+            parts.push(term.energy(state.deformations()));
+        }
         let v = read_scalars(grid, parts);
+        let landmarks = match self.landmarks {
+            Some(_) => v[v.len() - 1],
+            None => 0.0,
+        };
         let pixels = grid.pixels() as f64;
         let mut evaluated = v[k..].iter();
         let data_scale = 1.0 / (2.0 * self.layout.channels() as f64 * pixels);
@@ -523,6 +550,7 @@ impl Ipalm {
                 })
                 .collect(),
             delta: p.delta,
+            landmarks,
         }
     }
 

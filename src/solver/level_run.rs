@@ -27,6 +27,8 @@ pub struct SweepEnergy {
     pub regularizer: f64,
     /// `(K/δ) Σ_k D_k`.
     pub data: f64,
+    /// SPEC §11's `E_lm` (0 without landmarks).
+    pub landmarks: f64,
 }
 
 /// How a level's state began.
@@ -272,6 +274,7 @@ impl LevelRun {
                 total,
                 regularizer: energy.regularizer_part(),
                 data: energy.data_part(),
+                landmarks: energy.landmarks,
             });
         }
         let bad = energy.first_nonfinite().map_or(String::new(), |(k, r, d)| {

@@ -9,6 +9,7 @@ use std::time::Instant;
 use burn::tensor::{Device, Tensor};
 
 use crate::error::{Error, Result};
+use crate::model::energy::landmarks::{LandmarkTerm, Landmarks};
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
 use crate::model::layout::FeatureLayout;
@@ -39,6 +40,19 @@ pub struct MultilevelConfig {
     pub params: EnergyParams,
     /// The solver's settings.
     pub ipalm: IpalmConfig,
+    /// SPEC §11's landmark weight `γ` (`--landmark-weight`), used only with landmarks
+    /// ([`Multilevel::with_landmarks`]). Default [`DEFAULT_LANDMARK_WEIGHT`].
+    #[serde(default = "default_landmark_weight")]
+    pub landmark_weight: f64,
+}
+
+/// The default landmark weight `γ` (SPEC §11). Provisional: chosen on synthetic translated
+/// pairs (a landmark pair met to within a working pixel at 64², tests/suite/cli.rs); SPEC's
+/// measurement on hand-placed real landmarks at 256² is still to be made.
+pub const DEFAULT_LANDMARK_WEIGHT: f64 = 10.0;
+
+fn default_landmark_weight() -> f64 {
+    DEFAULT_LANDMARK_WEIGHT
 }
 
 /// The number of sweeps over which [`MultilevelConfig::tolerance`] measures the decrease.
@@ -53,6 +67,7 @@ impl Default for MultilevelConfig {
             tolerance: 1e-4,
             params: EnergyParams::rgb(),
             ipalm: IpalmConfig::default(),
+            landmark_weight: DEFAULT_LANDMARK_WEIGHT,
         }
     }
 }
@@ -78,6 +93,13 @@ impl MultilevelConfig {
         }
         if !(0.0..1.0).contains(&self.tolerance) {
             return Err(Error::invalid("tol", self.tolerance, "in [0, 1) (0 = off)"));
+        }
+        if !(self.landmark_weight.is_finite() && (0.0..=1e9).contains(&self.landmark_weight)) {
+            return Err(Error::invalid(
+                "landmark-weight",
+                self.landmark_weight,
+                "in [0, 1e9]",
+            ));
         }
         self.params.validate()?;
         self.ipalm.validate()
@@ -249,6 +271,8 @@ pub struct Multilevel {
     /// A fault to inject for testing the non-finite path (see
     /// [`inject_nonfinite`](Self::inject_nonfinite)).
     inject_nonfinite: Option<(usize, usize)>,
+    /// SPEC §11's landmarks on the working grid.
+    landmarks: Option<Landmarks>,
 }
 
 impl Multilevel {
@@ -264,7 +288,17 @@ impl Multilevel {
             draft: None,
             resume: None,
             inject_nonfinite: None,
+            landmarks: None,
         })
+    }
+
+    /// Steers the path by SPEC §11's landmark term with weight
+    /// [`MultilevelConfig::landmark_weight`]: `landmarks` are given on the working grid
+    /// (the size of the inputs of [`run`](Self::run)) and mapped to each level by the
+    /// align-corners rule of SPEC §7.
+    pub fn with_landmarks(mut self, landmarks: Landmarks) -> Self {
+        self.landmarks = Some(landmarks);
+        self
     }
 
     /// Starts from `draft` instead of the coarsest level: the levels no larger than the
@@ -359,6 +393,17 @@ impl Multilevel {
             });
         }
         let sizes = cfg.level_sizes(h, w)?;
+        if let Some(landmarks) = &self.landmarks
+            && landmarks.size() != (h, w)
+        {
+            return Err(Error::Shape {
+                op: "landmarks",
+                detail: format!(
+                    "given on a {:?} grid for inputs of {h}x{w} (rows x columns)",
+                    landmarks.size()
+                ),
+            });
+        }
         let dtype = u_a.dtype();
         let full = Grid::new(h, w, device, dtype)?;
         let started = Instant::now();
@@ -414,7 +459,15 @@ impl Multilevel {
                     )?,
                 ),
             };
-            let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
+            let mut ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
+            if let Some(landmarks) = &self.landmarks {
+                ipalm = ipalm.with_landmarks(LandmarkTerm::new(
+                    &grid,
+                    &landmarks.on_grid((lh, lw)),
+                    k,
+                    cfg.landmark_weight,
+                )?);
+            }
             let mut run = LevelRun::init(
                 ipalm,
                 grid,
@@ -521,6 +574,7 @@ impl Multilevel {
                 energy: swept.energy.total,
                 regularizer: swept.energy.regularizer,
                 data: swept.energy.data,
+                landmarks: swept.energy.landmarks,
                 report: swept.report.as_ref(),
                 state: run.state(),
                 seconds: context.started.elapsed().as_secs_f64(),

@@ -37,6 +37,8 @@ pub struct SweepEvent<'a> {
     pub regularizer: f64,
     /// `Σ_k D_k / δ` of that evaluation (times `K`, as in `E`).
     pub data: f64,
+    /// SPEC §11's landmark term `E_lm` of that evaluation (0 without landmarks).
+    pub landmarks: f64,
     /// What the sweep did (`None` for the initial state).
     pub report: Option<&'a SweepReport>,
     /// The state after the sweep.

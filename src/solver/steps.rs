@@ -162,12 +162,37 @@ impl Deformations<'_> {
         weighted_density(phi, pick(&self.a, items), p.lambda, p.mu)
     }
 
-    /// `S_k(φ_k) = K·R[φ_k, a_k]` of each item summed for decisions, `[n]`, from
-    /// [`density`](Self::density).
-    fn smooth_decision(&self, density: Tensor<3>) -> Tensor<1> {
+    /// SPEC §11's landmark part of `S_k` of each item, `[n]`, differentiable in `phi`;
+    /// `None` without landmarks.
+    fn landmarks(&self, phi: Tensor<4>, items: &[usize]) -> Option<Tensor<1>> {
+        let ks: Vec<usize> = items.iter().map(|&i| self.ks[i]).collect();
+        self.ipalm
+            .landmarks
+            .as_ref()
+            .map(|term| term.step_energies(&ks, phi))
+    }
+
+    /// `S_k(φ_k) = K·R[φ_k, a_k] (+ the landmark part)` of each item summed for decisions,
+    /// `[n]`, from [`density`](Self::density) and [`landmarks`](Self::landmarks). The
+    /// landmark part is a sum of `N` squares, cast, not a float64 sum of its summands: its
+    /// rounding is that of `N` float32 values, not of `H·W`.
+    fn smooth_decision(&self, density: Tensor<3>, landmarks: Option<Tensor<1>>) -> Tensor<1> {
         let grid = &self.ipalm.grid;
-        grid.decision_sum_each(density)
-            .mul_scalar(self.steps / grid.pixels() as f64)
+        let smooth = grid
+            .decision_sum_each(density)
+            .mul_scalar(self.steps / grid.pixels() as f64);
+        match landmarks {
+            Some(part) => {
+                let dtype = burn::tensor::FloatDType::from(smooth.dtype());
+                smooth + part.detach().cast(dtype)
+            }
+            None => smooth,
+        }
+    }
+
+    /// [`smooth_decision`](Self::smooth_decision) at `phi`.
+    fn smooth_at(&self, phi: Tensor<4>, items: &[usize]) -> Tensor<1> {
+        self.smooth_decision(self.density(phi.clone(), items), self.landmarks(phi, items))
     }
 
     /// `(K/δ) / (2·C_tot·H·W)`: the data part of `e_k` per unit of squared residual norm.
@@ -216,10 +241,7 @@ impl Deformations<'_> {
                 (smooth, residual)
             }
             None => {
-                let [smooth, residual] = read_groups(
-                    grid,
-                    [self.smooth_decision(self.density(phi, items)), distance],
-                );
+                let [smooth, residual] = read_groups(grid, [self.smooth_at(phi, items), distance]);
                 (smooth, residual)
             }
         };
@@ -249,10 +271,12 @@ impl Deformations<'_> {
         // One density for the gradient and the decision sums: the same values either way.
         // The S_k are independent: the gradient of their sum is each one's gradient.
         let density = self.density(leaf.clone(), items);
-        let grads = mean_density(density.clone())
-            .sum()
-            .mul_scalar(self.steps)
-            .backward();
+        let landmarks = self.landmarks(leaf.clone(), items);
+        let mut smooth = mean_density(density.clone()).sum().mul_scalar(self.steps);
+        if let Some(part) = &landmarks {
+            smooth = smooth + part.clone().sum();
+        }
+        let grads = smooth.backward();
         let gradient = leaf
             .grad(&grads)
             .expect("the regulariser depends on phi")
@@ -260,7 +284,7 @@ impl Deformations<'_> {
         let [smooth, grad_norm2] = read_groups(
             grid,
             [
-                self.smooth_decision(density),
+                self.smooth_decision(density, landmarks),
                 grid.decision_norm2_each(gradient.clone()),
             ],
         );
@@ -324,7 +348,7 @@ impl Deformations<'_> {
                 grid,
                 [
                     min_det_each(candidates.clone()),
-                    self.smooth_decision(self.density(candidates.clone(), &sub.items)),
+                    self.smooth_at(candidates.clone(), &sub.items),
                     grid.decision_dot_each(sub.gradient.clone(), d.clone()),
                     grid.decision_norm2_each(d),
                 ],

@@ -360,7 +360,7 @@ fn restarts_and_drops_are_logged() {
         csv.lines()
             .next()
             .unwrap()
-            .ends_with(",restarts,drops_phi,drops_f,stop,m_phi"),
+            .ends_with(",restarts,drops_phi,drops_f,stop,m_phi,E_lm"),
         "{csv}"
     );
     let log = EnergyLog::from_csv(&csv).unwrap();

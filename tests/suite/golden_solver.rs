@@ -274,6 +274,7 @@ fn multilevel_rgb(backend: Backend) {
         // The case's README says "all stored L = 1", but its L_phi_final (0.0041 = 2 · 0.9⁴ /
         // 320 on the 16×20 level) shows the 1/(H·W) start that SPEC §6 prescribes.
         tolerance: 0.0,
+        ..MultilevelConfig::default()
     };
     let input = |name: &str| -> Tensor<4> { tensor(case.golden.input(name), &case.device, F32) };
     let mut log = EnergyLog(Vec::new());

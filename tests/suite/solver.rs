@@ -8,9 +8,12 @@ use std::sync::atomic::AtomicBool;
 
 use burn::tensor::{Device, Tensor};
 use common::{device, values};
+use deepmorph::eval::metrics::LandmarkResiduals;
 use deepmorph::model::deformation::admissible_each;
+use deepmorph::model::energy::landmarks::{LandmarkTerm, Landmarks};
+use deepmorph::model::layout::FeatureLayout;
 use deepmorph::model::warp::BSpline;
-use deepmorph::solver::ipalm::{IpalmConfig, Schedule};
+use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, Schedule};
 use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
 use deepmorph::solver::observer::{Observer, SweepEvent, Termination};
 use deepmorph::{Backend, Grid, Precision};
@@ -292,8 +295,77 @@ fn schedules_reach_the_same_minimiser(backend: Backend) {
     assert!(gap < 0.05, "deformations differ by {gap} px");
 }
 
+/// The composed map's residual `|Φ(p) − q|` of one landmark pair (`[row, col]`) after a
+/// morph.
+fn landmark_residual(morph: &Morph, p: [f64; 2], q: [f64; 2]) -> f64 {
+    let (h, w) = (morph.grid.height(), morph.grid.width());
+    let phi = values(composed(&morph.grid, &morph.state.phi));
+    LandmarkResiduals::of(&phi, (h, w), &[(p, q)]).max
+}
+
+/// SPEC §11 in the solver: a blob moved by a third of the domain is cross-faded by plain
+/// metamorphosis (its centre stays where it was), while one landmark pair on its centre is
+/// met to within a working pixel, in both schedules; every φ stays admissible (`run`), and
+/// the logged `E` holds `E_lm` as the term evaluates it.
+fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let n = 32;
+    let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
+    let (p, q) = ([10.0, 9.0], [21.0, 22.0]);
+    let a = blob(&grid, p[0], p[1], 2.5);
+    let b = blob(&grid, q[0], q[1], 2.5);
+    let config = small(4, 3, 60);
+    let (plain, _) = run(&device, config, a.clone(), b.clone());
+    let missed = landmark_residual(&plain, p, q);
+    assert!(
+        missed > 8.0,
+        "plain metamorphosis moved the blob: |Φ(p) − q| = {missed}"
+    );
+    let landmarks = Landmarks::new(vec![p], vec![q], (n, n)).unwrap();
+    for schedule in [Schedule::Sequential, Schedule::Batched] {
+        let mut config = config;
+        config.ipalm.schedule = schedule;
+        let mut watch = Watch::default();
+        let morph = Multilevel::new(config)
+            .unwrap()
+            .with_landmarks(landmarks.clone())
+            .run(
+                &device,
+                a.clone(),
+                b.clone(),
+                &mut watch,
+                &AtomicBool::new(false),
+            )
+            .unwrap();
+        assert!(watch.inadmissible.is_empty(), "{:?}", watch.inadmissible);
+        let met = landmark_residual(&morph, p, q);
+        assert!(met < 1.0, "{schedule:?}: |Φ(p) − q| = {met} px");
+
+        let term = LandmarkTerm::new(&grid, &landmarks, 4, config.landmark_weight).unwrap();
+        let expected = values(term.energy(morph.state.deformations()))[0];
+        let ipalm = Ipalm::new(&grid, config.params, FeatureLayout::rgb(), config.ipalm)
+            .unwrap()
+            .with_landmarks(term);
+        let energy = ipalm.energy_after(&morph.state, None);
+        assert!(
+            (energy.landmarks - expected).abs() <= 1e-6 * expected.abs() + 1e-12,
+            "{schedule:?}: E_lm {} against the term's {expected}",
+            energy.landmarks
+        );
+        let parts = energy.regularizer_part() + energy.data_part() + energy.landmarks;
+        assert_eq!(energy.total(), parts);
+        let last = *watch.energies.last().unwrap().last().unwrap();
+        assert!(
+            (last - energy.total()).abs() <= 1e-6 * last.abs(),
+            "{schedule:?}: logged E {last}, evaluated {}",
+            energy.total()
+        );
+    }
+}
+
 on_each_backend!(
     equal_images_stay_constant,
+    landmarks_steer_the_path_in_both_schedules,
     energy_decreases_without_extrapolation,
     batched_equal_images_stay_constant,
     batched_energy_decreases_without_extrapolation,
@@ -303,11 +375,18 @@ on_each_backend!(
 // does not depend on the backend; wgpu's agreement with the CPU backends over whole runs is
 // `cli::every_backend_gives_the_same_morph` and the golden sweeps. On lavapipe these two
 // took 825 s together on this 2-core machine kind; the whole suite without them takes 270 s.
+// The landmark runs (3 morphs of 3 levels × 60 sweeps) took 230 s on lavapipe; the term
+// itself is checked on wgpu by the golden file `landmark_energy_K3_10x13`, and both
+// schedules take it through the one step implementation these runs exercise.
 mod long_runs {
-    use super::{schedules_reach_the_same_minimiser, translated_blob_is_recovered};
+    use super::{
+        landmarks_steer_the_path_in_both_schedules, schedules_reach_the_same_minimiser,
+        translated_blob_is_recovered,
+    };
     on_each_cpu_backend!(
         translated_blob_is_recovered,
-        schedules_reach_the_same_minimiser
+        schedules_reach_the_same_minimiser,
+        landmarks_steer_the_path_in_both_schedules
     );
 }
 

@@ -12,6 +12,7 @@ use deepmorph::app::config::{
 };
 use deepmorph::eval::synthetic::Field;
 use deepmorph::io::animation::{DEFAULT_QUALITY, VideoFormat};
+use deepmorph::io::points::read_points;
 use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::{Backend, EnergyParams};
 
@@ -90,6 +91,13 @@ pub struct RunArgs {
     no_safeguard: bool,
     #[arg(long, value_enum, help = default("Block order of a sweep: sequential (the paper's Algorithm 1) or batched (all deformations, then odd, then even frames, each as one stacked operation)", format!("{:?}", rgb().solver.ipalm.schedule).to_lowercase()))]
     schedule: Option<deepmorph::solver::ipalm::Schedule>,
+    /// Landmark pairs that steer the path (SPEC §11): a CSV with the header x_a,y_a,x_b,y_b
+    /// (one pair a line) or a JSON array of {"a": [x, y], "b": [x, y]}; x is the column and
+    /// y the row in each image's own pixels, origin at the centre of the top-left pixel.
+    #[arg(long, value_name = "FILE")]
+    points: Option<PathBuf>,
+    #[arg(long, value_name = "GAMMA", allow_negative_numbers = true, help = default("Weight gamma of the landmark term (SPEC §11; used with --points)", rgb().solver.landmark_weight))]
+    landmark_weight: Option<f64>,
     #[arg(long, value_name = "X", allow_negative_numbers = true, help = default("Stop a level once E decreased by less than X (relative) over the last 10 sweeps; 0 = run all J sweeps", rgb().solver.tolerance))]
     tol: Option<f64>,
     #[arg(long, value_enum, help = default("rgb: images compared by colour; deep: by VGG19 features (needs --vgg19; sizes are rounded to multiples of 16, at most 5 levels)", "rgb"))]
@@ -226,6 +234,10 @@ impl RunArgs {
         }
         solver.ipalm.schedule = self.schedule.unwrap_or(solver.ipalm.schedule);
         solver.tolerance = self.tol.unwrap_or(solver.tolerance);
+        solver.landmark_weight = self.landmark_weight.unwrap_or(solver.landmark_weight);
+        if let Some(path) = &self.points {
+            config.points = Some(read_points(path)?);
+        }
         if let Some(deep) = &mut config.deep {
             let f = &mut deep.features;
             f.eta = self.eta.unwrap_or(f.eta);

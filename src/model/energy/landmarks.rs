@@ -97,6 +97,16 @@ impl Landmarks {
         })
     }
 
+    /// The points of A and of B, `[row, col]` each, on the grid they were given on.
+    pub fn pairs(&self) -> (&[[f64; 2]], &[[f64; 2]]) {
+        (&self.a, &self.b)
+    }
+
+    /// The grid they were given on, `(H, W)`.
+    pub fn size(&self) -> (usize, usize) {
+        self.size
+    }
+
     /// `N`.
     pub fn len(&self) -> usize {
         self.a.len()
@@ -314,6 +324,50 @@ impl LandmarkTerm {
             .square()
             .sum()
             .mul_scalar(self.scale)
+    }
+
+    /// The parts of `E_lm` that the steps `ks` (each in `1..=K`) contribute, one per step,
+    /// differentiable in `phi`: what joins the smooth parts `S_k` of a stack of deformation
+    /// steps (SPEC §11).
+    ///
+    /// # Shapes
+    /// - `phi`: `[ks.len(), 2, H, W]`, `φ_k` for each `k` of `ks`
+    /// - output: `[ks.len()]`
+    pub fn step_energies(&self, ks: &[usize], phi: Tensor<4>) -> Tensor<1> {
+        let n = ks.len();
+        if let Some(run) = ks.windows(2).all(|p| p[1] == p[0] + 1).then_some(ks[0]) {
+            return self.parts(self.residuals_from(run - 1, phi));
+        }
+        let [_, _, h, w] = phi.dims();
+        let rows = |t: &Tensor<3>| ks.iter().map(|&k| t.clone().narrow(0, k - 1, 1)).collect();
+        let index = Tensor::cat(
+            ks.iter()
+                .map(|&k| self.index.clone().narrow(0, k - 1, 1))
+                .collect(),
+            0,
+        );
+        let at = phi.reshape([n, 2, h * w]).gather(2, index) * Tensor::cat(rows(&self.weight), 0);
+        let at: Tensor<3> = at
+            .reshape([n, 2 * self.count, 4])
+            .sum_dim(2)
+            .reshape([n, 2, self.count]);
+        self.parts(at - Tensor::cat(rows(&self.target), 0))
+    }
+
+    /// `scale · ‖r_k‖²` of each step of a stack of residuals `[n, 2, N]`: `[n]`.
+    fn parts(&self, residuals: Tensor<3>) -> Tensor<1> {
+        let n = residuals.dims()[0];
+        residuals
+            .square()
+            .reshape([n, 2 * self.count])
+            .sum_dim(1)
+            .reshape([n])
+            .mul_scalar(self.scale)
+    }
+
+    /// `K`.
+    pub fn steps(&self) -> usize {
+        self.steps
     }
 
     /// The hand-derived gradient `∂E_lm/∂φ` in float64 on the host, from the host values of

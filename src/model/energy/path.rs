@@ -48,6 +48,9 @@ pub struct StepEnergies {
     pub data: Vec<f64>,
     /// `δ`.
     pub delta: f64,
+    /// SPEC §11's landmark term `E_lm` of the whole path (its factor `K` included); 0 without
+    /// landmarks.
+    pub landmarks: f64,
 }
 
 impl StepEnergies {
@@ -56,9 +59,9 @@ impl StepEnergies {
         self.regularizer.len()
     }
 
-    /// `E = K Σ_k (R_k + D_k / δ)`.
+    /// `E = K Σ_k (R_k + D_k / δ)`, plus `E_lm` with landmarks (SPEC §11).
     pub fn total(&self) -> f64 {
-        self.regularizer_part() + self.data_part()
+        self.regularizer_part() + self.data_part() + self.landmarks
     }
 
     /// `K Σ_k R_k`.
