@@ -1043,3 +1043,142 @@ fn an_interrupted_morph_resumes_where_it_stopped() {
     assert_eq!(record(&part)["outcome"]["termination"], "completed");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// The landmark residual `|Φ(p) − q|` (`[row, col]`) of the morph in `out`, from its
+/// deformations.
+fn landmark_residual(out: &Path, p: [f64; 2], q: [f64; 2]) -> f64 {
+    let device = Backend::Flex.device_for(deepmorph::Precision::F32).unwrap();
+    let folder = deepmorph::eval::folder::MorphFolder::read(out, &device).unwrap();
+    let (h, w) = (folder.grid.height(), folder.grid.width());
+    let phi = common::values(folder.composed());
+    deepmorph::eval::metrics::LandmarkResiduals::of(&phi, (h, w), &[(p, q)]).max
+}
+
+/// SPEC §11 from the command line: on a pair whose spots sit a third of the image apart,
+/// plain metamorphosis leaves the spot's centre where it was (a cross-fade); one landmark
+/// pair on it (`--points`, CSV or JSON, in each image's own pixels: B is twice the size of
+/// A here, so its point maps by pixel centres) is met to within a working pixel, and the run
+/// reports it (`metrics.json`, `config.json`, `energy.csv`'s `E_lm`).
+#[test]
+fn points_steer_the_morph_and_are_reported() {
+    let dir = scratch("points");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 32, 32, 0.3, 0.28);
+    write_image(&b, 64, 64, 0.68, 0.7);
+    // Working grid 32²: A's spot at (9.6, 8.96), B's at row 43.52, column 44.8 of 64, i.e.
+    // (43.52 + ½)/2 − ½ = 21.51 and (44.8 + ½)/2 − ½ = 22.15 of 32.
+    let (p, q) = ([9.6, 8.96], [21.51, 22.15]);
+    let csv = dir.join("points.csv");
+    std::fs::write(&csv, "x_a,y_a,x_b,y_b\n8.96,9.6,44.8,43.52\n").unwrap();
+    let json = dir.join("points.json");
+    std::fs::write(&json, r#"[{"a": [8.96, 9.6], "b": [44.8, 43.52]}]"#).unwrap();
+    let run = |out: &Path, extra: &[&std::ffi::OsStr]| {
+        deepmorph()
+            .arg("morph")
+            .args([&a, &b])
+            .arg("-o")
+            .arg(out)
+            .args(["-q", "-K", "4", "--levels", "3", "--sweeps", "60"])
+            .args(["--size", "32x32", "--backend", "flex", "--video", "gif"])
+            .args(extra)
+            .assert()
+            .success();
+    };
+    let plain = dir.join("plain");
+    run(&plain, &[]);
+    let missed = landmark_residual(&plain, p, q);
+    assert!(
+        missed > 8.0,
+        "plain metamorphosis met the landmark: {missed} px"
+    );
+
+    for (name, file) in [("csv", &csv), ("json", &json)] {
+        let out = dir.join(name);
+        run(&out, &["--points".as_ref(), file.as_os_str()]);
+        let met = landmark_residual(&out, p, q);
+        assert!(met < 1.0, "{name}: |Φ(p) − q| = {met} px");
+        let metrics: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("metrics.json")).unwrap()).unwrap();
+        let reported = metrics["landmarks"]["max"].as_f64().unwrap();
+        assert!((reported - met).abs() < 1e-6, "{reported} against {met}");
+        let config: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join("config.json")).unwrap()).unwrap();
+        assert_eq!(config["config"]["points"][0]["b"][0], 44.8);
+        let working = config["landmarks"][0]["b"].as_array().unwrap();
+        assert!(
+            (working[1].as_f64().unwrap() - q[0]).abs() < 1e-12,
+            "{working:?}"
+        );
+        let log = EnergyLog::read(&out.join("energy.csv")).unwrap();
+        let last = log.records.last().unwrap();
+        assert!(
+            last.landmarks > 0.0 && last.landmarks < last.energy,
+            "{last:?}"
+        );
+        assert!(
+            (last.regularizer + last.data + last.landmarks - last.energy).abs()
+                <= 1e-6 * last.energy
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Every kind of bad points file or point is refused before any work, in one line naming
+/// what is wrong.
+#[test]
+fn bad_points_fail_with_a_clear_message() {
+    let dir = scratch("bad_points");
+    let (a, b, c) = (dir.join("a.png"), dir.join("b.png"), dir.join("c.png"));
+    for image in [&a, &b, &c] {
+        write_image(image, 16, 16, 0.5, 0.5);
+    }
+    let out = dir.join("out");
+    let refused = |content: Option<&str>, expected: &str| {
+        let file = dir.join("points.csv");
+        match content {
+            Some(text) => std::fs::write(&file, text).unwrap(),
+            None => {
+                let _ = std::fs::remove_file(&file);
+            }
+        }
+        let err = fails(
+            deepmorph()
+                .arg("morph")
+                .args([&a, &b])
+                .arg("-o")
+                .arg(&out)
+                .arg("--points")
+                .arg(&file)
+                .args(TINY),
+        );
+        assert!(err.contains(expected), "{expected}: {err}");
+        assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+        assert!(!out.exists(), "nothing written");
+    };
+    refused(None, "points.csv");
+    refused(Some("x,y,u,v\n1,2,3,4\n"), "x_a,y_a,x_b,y_b");
+    refused(Some("x_a,y_a,x_b,y_b\n"), "at least 1");
+    refused(Some("x_a,y_a,x_b,y_b\n5,5,6\n"), "line 2: 3 values");
+    refused(Some("x_a,y_a,x_b,y_b\n5,5,NaN,6\n"), "finite");
+    refused(Some("x_a,y_a,x_b,y_b\n5,5,16,6\n"), "x in [0, 15]");
+    refused(Some("x_a,y_a,x_b,y_b\n5,5,0.5,6\n"), "one pixel inside");
+    refused(
+        Some("x_a,y_a,x_b,y_b\n5,5,6,6\n5,5,7,7\n"),
+        "points 1 and 2 of A",
+    );
+    // A chain takes no landmarks yet.
+    let file = dir.join("points.csv");
+    std::fs::write(&file, "x_a,y_a,x_b,y_b\n5,5,6,6\n").unwrap();
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .args([&a, &b, &c])
+            .arg("-o")
+            .arg(&out)
+            .arg("--points")
+            .arg(&file)
+            .args(TINY),
+    );
+    assert!(err.contains("chain"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
