@@ -80,6 +80,23 @@ impl MorphJob {
     /// not enough memory.
     pub fn prepare(config: MorphConfig, inputs: Inputs) -> Result<Self> {
         config.validate()?;
+        // config.json records these paths as text: one that is not UTF-8 would fail only
+        // when the morph is written, after all the work.
+        let recorded = inputs
+            .files()
+            .into_iter()
+            .chain(config.init.as_deref())
+            .chain(config.deep.as_ref().map(|deep| deep.vgg19.as_path()));
+        for path in recorded {
+            if path.to_str().is_none() {
+                return Err(Error::invalid(
+                    "path",
+                    path.display(),
+                    "a UTF-8 name (config.json records the paths of a run as text): rename \
+                     the file or folder",
+                ));
+            }
+        }
         config.backend.device_for(Precision::F32)?;
         let multiple = config.size_multiple();
         let deep = config.deep.is_some();

@@ -181,10 +181,16 @@ pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
         path: path.to_path_buf(),
         cause,
     };
+    // By content, else by extension: TGA has no signature to recognise it by.
+    let format = image::guess_format(&bytes)
+        .ok()
+        .or_else(|| image::ImageFormat::from_path(path).ok());
     let reader = || {
-        image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
-            .with_guessed_format()
-            .expect("reading from memory cannot fail")
+        let mut reader = image::ImageReader::new(std::io::Cursor::new(&bytes[..]));
+        if let Some(format) = format {
+            reader.set_format(format);
+        }
+        reader
     };
     let (w, h) = reader().into_dimensions().map_err(image_error)?;
     if w.max(h) > MAX_IMAGE_SIDE {
@@ -287,6 +293,21 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("missing.png"), "{err}");
+        fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// TGA has no signature: it is read by its extension (README lists it among the inputs).
+    #[test]
+    fn tga_is_read_by_its_extension() {
+        let dir = std::env::temp_dir().join(format!("deepmorph-tga-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("a.tga");
+        let img =
+            image::RgbImage::from_fn(5, 4, |x, y| image::Rgb([(40 * x) as u8, (60 * y) as u8, 7]));
+        img.save(&path).unwrap();
+        let back = RgbImage::load(&path).unwrap();
+        assert_eq!((back.height(), back.width()), (4, 5));
+        assert_eq!(back.to_rgb8(), img);
         fs::remove_dir_all(&dir).unwrap();
     }
 }

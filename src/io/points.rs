@@ -240,36 +240,19 @@ mod tests {
         // B is 80 rows high: its row 30 is row (30.5)/2 − 0.5 = 14.75 at 40 rows.
         assert_eq!(l.pairs(), (&[[5.0, 10.0]][..], &[[14.75, 20.0]][..]));
         assert_eq!(pairs_of(&l)[0].b, [20.0, 14.75]);
-        let outside = landmarks_on_working_grid(
-            &[PointPair {
-                a: [40.0, 5.0],
-                b: [20.0, 30.0],
-            }],
-            (40, 40),
-            (40, 40),
-            (40, 40),
-        )
-        .unwrap_err()
-        .to_string();
+        // One pair on 40² images and a 40² working grid.
+        let refused = |a: [f64; 2]| {
+            let pair = PointPair { a, b: [20.0, 30.0] };
+            landmarks_on_working_grid(&[pair], (40, 40), (40, 40), (40, 40))
+                .unwrap_err()
+                .to_string()
+        };
+        let outside = refused([40.0, 5.0]);
         assert!(
             outside.contains("pair 1: the point of A") && outside.contains("x in [0, 39]"),
             "{outside}"
         );
-        let border = landmarks_on_working_grid(
-            &[PointPair {
-                a: [0.5, 5.0],
-                b: [20.0, 30.0],
-            }],
-            (40, 40),
-            (40, 40),
-            (40, 40),
-        );
-        assert!(border.unwrap_err().to_string().contains("at least one"));
-        let nan = PointPair {
-            a: [f64::NAN, 5.0],
-            b: [20.0, 30.0],
-        };
-        let nan = landmarks_on_working_grid(&[nan], (40, 40), (40, 40), (40, 40));
-        assert!(nan.unwrap_err().to_string().contains("finite"));
+        assert!(refused([0.5, 5.0]).contains("at least one"));
+        assert!(refused([f64::NAN, 5.0]).contains("finite"));
     }
 }

@@ -1182,3 +1182,30 @@ fn bad_points_fail_with_a_clear_message() {
     assert!(err.contains("chain"), "{err}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A path that is not UTF-8 cannot be recorded in `config.json`: refused before any work,
+/// in one line, instead of failing after the solve.
+#[cfg(unix)]
+#[test]
+fn a_path_that_is_not_utf8_is_refused_before_any_work() {
+    use std::os::unix::ffi::OsStrExt;
+    let dir = scratch("not_utf8");
+    let a = dir.join(std::ffi::OsStr::from_bytes(b"bad\xff.png"));
+    let b = dir.join("b.png");
+    write_image(&a, 16, 16, 0.5, 0.4);
+    write_image(&b, 16, 16, 0.5, 0.6);
+    let out = dir.join("out");
+    let err = fails(
+        deepmorph()
+            .arg("morph")
+            .arg(&a)
+            .arg(&b)
+            .arg("-o")
+            .arg(&out)
+            .args(TINY),
+    );
+    assert!(err.contains("UTF-8"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    assert!(!out.exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
