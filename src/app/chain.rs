@@ -109,6 +109,14 @@ impl ChainJob {
                  each pair with its own --points)",
             ));
         }
+        if !config.align.is_none() {
+            return Err(Error::invalid(
+                "align",
+                config.align.name(),
+                "none for a chain: it does not align its segments yet (morph each pair with \
+                 its own --align)",
+            ));
+        }
         let pair = |config: MorphConfig, i: usize| {
             MorphJob::prepare(
                 config,

@@ -11,6 +11,7 @@ use crate::backend::Backend;
 use crate::error::{Error, Result};
 use crate::io::animation::{DEFAULT_QUALITY, Playback, VideoFormat};
 use crate::io::points::PointPair;
+use crate::model::alignment::{AlignKind, MapSummary};
 use crate::model::feature_model::DeepConfig;
 use crate::model::params::EnergyParams;
 use crate::solver::multilevel::MultilevelConfig;
@@ -192,6 +193,53 @@ pub struct MorphConfig {
     /// the path finds its correspondences through the energy alone.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub points: Option<Vec<PointPair>>,
+    /// SPEC §11's initial alignment (`--align`): the global map the coarsest level starts
+    /// from, estimated from the landmarks when there are any, otherwise from the images.
+    #[serde(default, skip_serializing_if = "AlignKind::is_none")]
+    pub align: AlignKind,
+}
+
+/// How SPEC §11's global map `G` of a run was estimated, for `config.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AlignmentRecord {
+    /// `similarity` or `affine`.
+    pub kind: AlignKind,
+    /// `landmarks` (least squares) or `images` (normalised cross-correlation on the coarsest
+    /// level).
+    pub source: String,
+    /// `G` on the working grid in working pixels, `x` = column, `y` = row:
+    /// `x' = m[0][0] x + m[0][1] y + m[0][2]`, `y' = m[1][0] x + m[1][1] y + m[1][2]`.
+    pub matrix: [[f64; 3]; 2],
+    /// Its parts: translation of the centre, rotation, scale, anisotropy.
+    pub summary: MapSummary,
+    /// From the images: the correlation reached and that of no alignment.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ncc: Option<[f64; 2]>,
+}
+
+impl AlignmentRecord {
+    /// One line for a person: "initial alignment (similarity, from the images): shift
+    /// (+12.0, -3.5) px, rotation +4.0°, scale 1.08; correlation 0.41 -> 0.83".
+    pub fn describe(&self) -> String {
+        let s = &self.summary;
+        let mut line = format!(
+            "initial alignment ({}, from the {}): shift ({:+.1}, {:+.1}) px, rotation \
+             {:+.1} deg (counter-clockwise), scale {:.3}",
+            self.kind.name(),
+            self.source,
+            s.translation[0],
+            s.translation[1],
+            s.rotation_degrees,
+            s.scale
+        );
+        if self.kind == AlignKind::Affine {
+            line.push_str(&format!(", anisotropy {:.3}", s.anisotropy));
+        }
+        if let Some([reached, identity]) = self.ncc {
+            line.push_str(&format!("; correlation {identity:.3} -> {reached:.3}"));
+        }
+        line
+    }
 }
 
 impl Default for MorphConfig {
@@ -209,6 +257,7 @@ impl Default for MorphConfig {
             init: None,
             max_memory_gib: None,
             points: None,
+            align: AlignKind::None,
         }
     }
 }
@@ -290,6 +339,14 @@ impl MorphConfig {
             }
         }
         self.playback().validate()?;
+        if !self.align.is_none() && self.init.is_some() {
+            return Err(Error::invalid(
+                "align",
+                self.align.name(),
+                "none with --init: the alignment starts the coarsest level, which a draft \
+                 replaces",
+            ));
+        }
         if let Some(n) = self.animation_frames {
             crate::model::inbetween::check_count(self.solver.steps, n)?;
         }
@@ -364,6 +421,9 @@ pub struct RunRecord {
     /// used them (SPEC §11); absent without landmarks.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub landmarks: Option<Vec<PointPair>>,
+    /// SPEC §11's global map the coarsest level started from (`--align`); absent without.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alignment: Option<AlignmentRecord>,
     /// How it ended.
     pub outcome: Outcome,
 }

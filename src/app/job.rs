@@ -10,7 +10,7 @@ use std::time::Instant;
 use burn::tensor::Tensor;
 use image::RgbImage as Rgb8;
 
-use crate::app::config::{Inputs, MorphConfig, Outcome, RunRecord};
+use crate::app::config::{AlignmentRecord, Inputs, MorphConfig, Outcome, RunRecord};
 use crate::app::demo::demo_pair;
 use crate::app::evaluate::landmark_residuals;
 use crate::app::memory;
@@ -30,6 +30,9 @@ use crate::io::outputs::{
     CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations, write_frames,
 };
 use crate::io::points::{landmarks_on_working_grid, pairs_of};
+use crate::model::alignment::{
+    AlignKind, GlobalMap, GreyImage, SearchRanges, estimate_from_images,
+};
 use crate::model::energy::landmarks::Landmarks;
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
@@ -48,6 +51,8 @@ pub struct MorphJob {
     estimate: u64,
     /// SPEC §11's landmarks on the working grid, from [`MorphConfig::points`].
     landmarks: Option<Landmarks>,
+    /// SPEC §11's global map on the working grid, from [`MorphConfig::align`].
+    alignment: Option<(GlobalMap, AlignmentRecord)>,
     estimate_time: bool,
     resume: Option<PathBuf>,
     /// A fault for the tests (feature `check`): `None` in every other build.
@@ -183,6 +188,14 @@ impl MorphJob {
             }
             None => None,
         };
+        let alignment = match config.align {
+            AlignKind::None => None,
+            kind => {
+                let aligned = estimate_alignment(&config, kind, &images, landmarks.as_ref())?;
+                notes.push(aligned.1.describe());
+                Some(aligned)
+            }
+        };
         Ok(Self {
             config,
             inputs,
@@ -190,6 +203,7 @@ impl MorphJob {
             notes,
             estimate,
             landmarks,
+            alignment,
             estimate_time: false,
             resume: None,
             inject_nonfinite: None,
@@ -324,6 +338,9 @@ impl MorphJob {
         if let Some(landmarks) = &self.landmarks {
             driver = driver.with_landmarks(landmarks.clone());
         }
+        if let Some((map, _)) = &self.alignment {
+            driver = driver.with_alignment(*map);
+        }
         if let Some(dir) = &self.config.init {
             let folder = MorphFolder::read(dir, &device)?;
             let frames = folder
@@ -383,6 +400,51 @@ impl MorphJob {
     }
 }
 
+/// SPEC §11's global map for `--align kind`: from the landmarks by least squares when there
+/// are any, otherwise from the images on the coarsest level (RGB resampled to its size,
+/// blurred grey, [`SearchRanges::default`]).
+///
+/// # Errors
+///
+/// Too few or degenerate landmarks, a map that reflects, or images without contrast.
+fn estimate_alignment(
+    config: &MorphConfig,
+    kind: AlignKind,
+    (a, b): &(RgbImage, RgbImage),
+    landmarks: Option<&Landmarks>,
+) -> Result<(GlobalMap, AlignmentRecord)> {
+    let (h, w) = (a.height(), a.width());
+    let (map, source, ncc) = match landmarks {
+        Some(landmarks) => (
+            GlobalMap::from_landmarks(landmarks, kind)?,
+            "landmarks",
+            None,
+        ),
+        None => {
+            let (lh, lw) = config.solver.level_sizes(h, w)?[0];
+            let grey = |img: &RgbImage| {
+                let small = img.resized(lh, lw);
+                let planes: Vec<f64> = small.data().iter().map(|&v| f64::from(v)).collect();
+                GreyImage::from_rgb_planes(&planes, lh, lw, 1.0)
+            };
+            let found = estimate_from_images(&grey(a)?, &grey(b)?, kind, &SearchRanges::default())?;
+            (
+                found.map.on_grid((lh, lw), (h, w)),
+                "images",
+                Some([found.ncc, found.ncc_identity]),
+            )
+        }
+    };
+    let record = AlignmentRecord {
+        kind,
+        source: source.into(),
+        matrix: map.matrix_xy(),
+        summary: map.summary((h, w)),
+        ncc,
+    };
+    Ok((map, record))
+}
+
 impl MorphResult {
     /// The run's record, `config.json`.
     pub fn record(&self, job: &MorphJob) -> RunRecord {
@@ -394,6 +456,7 @@ impl MorphResult {
             working_size: [h, w],
             config: job.config.clone(),
             landmarks: job.landmarks.as_ref().map(pairs_of),
+            alignment: job.alignment.as_ref().map(|(_, record)| record.clone()),
             outcome: Outcome {
                 termination: self.morph.termination.to_string(),
                 grid: [self.morph.grid.height(), self.morph.grid.width()],

@@ -21,6 +21,7 @@
 //! - [`layout`], [`feature_model`]: the channels of a feature vector and the RGB or deep
 //!   feature vectors of each level (SPEC §4).
 
+pub mod alignment;
 pub(crate) mod cpu;
 pub mod decision;
 pub mod deformation;

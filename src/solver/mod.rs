@@ -20,6 +20,7 @@
 pub mod backtracking;
 mod batched;
 pub mod estimate;
+pub mod initial;
 pub mod ipalm;
 pub mod level_run;
 pub mod multilevel;

@@ -9,12 +9,14 @@ use std::time::Instant;
 use burn::tensor::{Device, Tensor};
 
 use crate::error::{Error, Result};
+use crate::model::alignment::GlobalMap;
 use crate::model::energy::landmarks::{LandmarkTerm, Landmarks};
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::Grid;
 use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
 use crate::model::resample::Resize;
+use crate::solver::initial::initial_state;
 use crate::solver::ipalm::{Ipalm, IpalmConfig, LevelState, initial_lipschitz};
 use crate::solver::level_run::{LevelRun, LevelStart, NonFinite, prolongate};
 use crate::solver::observer::{LevelStop, LevelSummary, Observer, Phase, SweepEvent, Termination};
@@ -273,6 +275,8 @@ pub struct Multilevel {
     inject_nonfinite: Option<(usize, usize)>,
     /// SPEC §11's landmarks on the working grid.
     landmarks: Option<Landmarks>,
+    /// SPEC §11's global map on the working grid (A's coordinates to B's).
+    alignment: Option<GlobalMap>,
 }
 
 impl Multilevel {
@@ -289,6 +293,7 @@ impl Multilevel {
             resume: None,
             inject_nonfinite: None,
             landmarks: None,
+            alignment: None,
         })
     }
 
@@ -298,6 +303,16 @@ impl Multilevel {
     /// align-corners rule of SPEC §7.
     pub fn with_landmarks(mut self, landmarks: Landmarks) -> Self {
         self.landmarks = Some(landmarks);
+        self
+    }
+
+    /// Starts the coarsest level from SPEC §11's initial path for the global map `map`
+    /// (given on the working grid, A's pixel coordinates to B's; see
+    /// [`crate::solver::initial`]) instead of `φ = Id` and the cross-fade. With landmarks
+    /// ([`with_landmarks`](Self::with_landmarks)) the coarsest level starts from that path
+    /// even without a map (then `G = Id`), carrying each landmark along its line.
+    pub fn with_alignment(mut self, map: GlobalMap) -> Self {
+        self.alignment = Some(map);
         self
     }
 
@@ -442,6 +457,25 @@ impl Multilevel {
                     },
                     resume.state.clone(),
                 ),
+                (None, None) if self.alignment.is_some() || self.landmarks.is_some() => {
+                    let map = self
+                        .alignment
+                        .unwrap_or_else(GlobalMap::identity)
+                        .on_grid((h, w), (lh, lw));
+                    let landmarks = self.landmarks.as_ref().map(|l| l.on_grid((lh, lw)));
+                    let (state, initialisation) = initial_state(
+                        &grid,
+                        &layout,
+                        f_a,
+                        f_b,
+                        k,
+                        cfg.params.delta,
+                        &map,
+                        landmarks.as_ref(),
+                    )?;
+                    observer.initialised(&initialisation);
+                    (LevelStart::Fresh, state)
+                }
                 (None, None) => (
                     LevelStart::Fresh,
                     LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?,

@@ -96,6 +96,52 @@ pub trait Observer {
 
     /// Before the first level, when the run was asked to estimate its time.
     fn estimate(&mut self, _estimate: &TimeEstimate) {}
+
+    /// After SPEC §11's initial path of the coarsest level was built (with `--align` or
+    /// landmarks only).
+    fn initialised(&mut self, _initialisation: &Initialisation) {}
+}
+
+/// How SPEC §11's initial path of the coarsest level came out.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Initialisation {
+    /// For each step `k = 1..K`: how often its displacement was halved to make it
+    /// admissible; [`MAX_HALVINGS`](crate::solver::initial::MAX_HALVINGS) + 1 means it
+    /// never was, and the step starts at `Id`.
+    pub halvings: Vec<u32>,
+}
+
+impl Initialisation {
+    /// A warning for the user when a step could not take its full share, `None` otherwise.
+    pub fn warning(&self) -> Option<String> {
+        let limit = crate::solver::initial::MAX_HALVINGS;
+        let halved = self
+            .halvings
+            .iter()
+            .filter(|&&h| h > 0 && h <= limit)
+            .count();
+        let identity = self.halvings.iter().filter(|&&h| h > limit).count();
+        if halved == 0 && identity == 0 {
+            return None;
+        }
+        let most = self
+            .halvings
+            .iter()
+            .copied()
+            .filter(|&h| h <= limit)
+            .max()
+            .unwrap_or(0);
+        Some(format!(
+            "warning: the initial path's deformations folded: {halved} of {} steps start \
+             with their displacement halved (up to {most} times){}",
+            self.halvings.len(),
+            if identity > 0 {
+                format!(", {identity} at the identity")
+            } else {
+                String::new()
+            }
+        ))
+    }
 }
 
 /// An observer that does nothing.
@@ -111,6 +157,10 @@ impl<T: Observer + ?Sized> Observer for &mut T {
     fn estimate(&mut self, estimate: &TimeEstimate) {
         (**self).estimate(estimate);
     }
+
+    fn initialised(&mut self, initialisation: &Initialisation) {
+        (**self).initialised(initialisation);
+    }
 }
 
 /// Two observers, called in order.
@@ -118,6 +168,11 @@ impl<A: Observer, B: Observer> Observer for (A, B) {
     fn sweep(&mut self, event: &SweepEvent<'_>) {
         self.0.sweep(event);
         self.1.sweep(event);
+    }
+
+    fn initialised(&mut self, initialisation: &Initialisation) {
+        self.0.initialised(initialisation);
+        self.1.initialised(initialisation);
     }
 
     fn estimate(&mut self, estimate: &TimeEstimate) {

@@ -9,13 +9,14 @@ use std::sync::atomic::AtomicBool;
 use burn::tensor::{Device, Tensor};
 use common::{device, values};
 use deepmorph::eval::metrics::LandmarkResiduals;
+use deepmorph::model::alignment::GlobalMap;
 use deepmorph::model::deformation::admissible_each;
 use deepmorph::model::energy::landmarks::{LandmarkTerm, Landmarks};
 use deepmorph::model::layout::FeatureLayout;
 use deepmorph::model::warp::BSpline;
 use deepmorph::solver::ipalm::{Ipalm, IpalmConfig, Schedule};
 use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
-use deepmorph::solver::observer::{Observer, SweepEvent, Termination};
+use deepmorph::solver::observer::{Initialisation, Observer, SweepEvent, Termination};
 use deepmorph::{Backend, Grid, Precision};
 
 /// A Gaussian blob of width `width` px centred at `(cy, cx)` on a `n × n` grid, with a
@@ -36,14 +37,28 @@ fn blob(grid: &Grid, cy: f64, cx: f64, width: f64) -> Tensor<4> {
 #[derive(Default)]
 struct Watch {
     energies: Vec<Vec<f64>>,
+    /// The data part `(K/δ) Σ D_k` of each energy, as `energies`.
+    data: Vec<Vec<f64>>,
     inadmissible: Vec<String>,
+    initialisations: Vec<Initialisation>,
+    /// The coarsest level's grid and deformations at its sweep 0.
+    start: Option<(Grid, Vec<Tensor<4>>)>,
 }
 
 impl Observer for Watch {
+    fn initialised(&mut self, initialisation: &Initialisation) {
+        self.initialisations.push(initialisation.clone());
+    }
+
     fn sweep(&mut self, e: &SweepEvent<'_>) {
         if e.sweep == 0 {
             self.energies.push(Vec::new());
+            self.data.push(Vec::new());
         }
+        if e.level == 0 && e.sweep == 0 {
+            self.start = Some((e.grid.clone(), e.state.phi.clone()));
+        }
+        self.data[e.level].push(e.data);
         assert!(
             e.energy.is_finite(),
             "level {} sweep {}: E = {}",
@@ -338,6 +353,8 @@ fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
             )
             .unwrap();
         assert!(watch.inadmissible.is_empty(), "{:?}", watch.inadmissible);
+        // The coarsest level starts from the landmarks (SPEC §11), each step whole.
+        assert_eq!(watch.initialisations[0].halvings, vec![0; 4]);
         let met = landmark_residual(&morph, p, q);
         assert!(met < 1.0, "{schedule:?}: |Φ(p) − q| = {met} px");
 
@@ -363,6 +380,56 @@ fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
     }
 }
 
+/// SPEC §11's initial alignment, without landmarks: a blob pair started from the
+/// translation `G` that takes the blob of A onto that of B. The coarsest level starts with
+/// the blob carried along: every step takes its whole share of `G`, the composed initial map
+/// takes the blob's centre to B's, and the frames are consistent with the deformations (the
+/// data term, all of the cross-fade's energy, is a fraction of it). The path ends with the
+/// blob nearer its place in B than plain metamorphosis leaves it, though not on it: for so
+/// small an object the cross-fade has the lower energy, and the optimisation drifts back
+/// towards it (landmarks hold it, `landmarks_steer_the_path_in_both_schedules`).
+fn an_aligned_start_carries_the_blob(backend: Backend) {
+    let device = device(backend, Precision::F32, true);
+    let n = 48;
+    let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
+    let (p, q) = ([16.0, 15.0], [30.0, 32.0]);
+    let a = blob(&grid, p[0], p[1], 3.0);
+    let b = blob(&grid, q[0], q[1], 3.0);
+    let config = small(4, 2, 40);
+    let (plain, plain_watch) = run(&device, config, a.clone(), b.clone());
+    let shift = GlobalMap::similarity([0.0, 0.0], 0.0, 1.0, [q[1] - p[1], q[0] - p[0]]);
+    let mut watch = Watch::default();
+    let morph = Multilevel::new(config)
+        .unwrap()
+        .with_alignment(shift)
+        .run(&device, a, b, &mut watch, &AtomicBool::new(false))
+        .unwrap();
+    assert!(watch.inadmissible.is_empty(), "{:?}", watch.inadmissible);
+    assert_eq!(watch.initialisations[0].halvings, vec![0; 4]);
+    let (start_grid, start_phi) = watch.start.as_ref().unwrap();
+    let coarse = |x: [f64; 2]| x.map(|v| v * (start_grid.height() - 1) as f64 / (n - 1) as f64);
+    let phi = values(composed(start_grid, start_phi));
+    let size = (start_grid.height(), start_grid.width());
+    let carried = LandmarkResiduals::of(&phi, size, &[(coarse(p), coarse(q))]).max;
+    assert!(
+        carried < 0.25,
+        "the initial path misses B's blob by {carried} coarse px"
+    );
+    let (start, plain_start) = (watch.data[0][0], plain_watch.data[0][0]);
+    assert!(
+        start < 0.1 * plain_start,
+        "data term at the aligned start {start}, at the cross-fade {plain_start}"
+    );
+    let (aligned, plain) = (
+        landmark_residual(&morph, p, q),
+        landmark_residual(&plain, p, q),
+    );
+    assert!(
+        aligned < 0.3 * plain,
+        "|Φ(p) − q| = {aligned} px aligned, {plain} px plain"
+    );
+}
+
 on_each_backend!(
     equal_images_stay_constant,
     landmarks_steer_the_path_in_both_schedules,
@@ -380,10 +447,11 @@ on_each_backend!(
 // schedules take it through the one step implementation these runs exercise.
 mod long_runs {
     use super::{
-        landmarks_steer_the_path_in_both_schedules, schedules_reach_the_same_minimiser,
-        translated_blob_is_recovered,
+        an_aligned_start_carries_the_blob, landmarks_steer_the_path_in_both_schedules,
+        schedules_reach_the_same_minimiser, translated_blob_is_recovered,
     };
     on_each_cpu_backend!(
+        an_aligned_start_carries_the_blob,
         translated_blob_is_recovered,
         schedules_reach_the_same_minimiser,
         landmarks_steer_the_path_in_both_schedules

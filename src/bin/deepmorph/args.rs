@@ -98,6 +98,12 @@ pub struct RunArgs {
     points: Option<PathBuf>,
     #[arg(long, value_name = "GAMMA", allow_negative_numbers = true, help = default("Weight gamma of the landmark term (SPEC §11; used with --points)", rgb().solver.landmark_weight))]
     landmark_weight: Option<f64>,
+    /// Start the coarsest level from a global map of A onto B (SPEC §11): from the --points
+    /// by least squares when given (similarity: 2 pairs or more, affine: 3), otherwise
+    /// found in the images (shifts up to 30% of each side, turns up to 30 degrees, scales
+    /// 0.71-1.41, then refined). Default none.
+    #[arg(long, value_enum, value_name = "MAP")]
+    align: Option<deepmorph::model::alignment::AlignKind>,
     #[arg(long, value_name = "X", allow_negative_numbers = true, help = default("Stop a level once E decreased by less than X (relative) over the last 10 sweeps; 0 = run all J sweeps", rgb().solver.tolerance))]
     tol: Option<f64>,
     #[arg(long, value_enum, help = default("rgb: images compared by colour; deep: by VGG19 features (needs --vgg19; sizes are rounded to multiples of 16, at most 5 levels)", "rgb"))]
@@ -235,6 +241,7 @@ impl RunArgs {
         solver.ipalm.schedule = self.schedule.unwrap_or(solver.ipalm.schedule);
         solver.tolerance = self.tol.unwrap_or(solver.tolerance);
         solver.landmark_weight = self.landmark_weight.unwrap_or(solver.landmark_weight);
+        config.align = self.align.unwrap_or(config.align);
         if let Some(path) = &self.points {
             config.points = Some(read_points(path)?);
         }

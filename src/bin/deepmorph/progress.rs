@@ -3,7 +3,7 @@
 use std::io::IsTerminal;
 
 use deepmorph::solver::estimate::TimeEstimate;
-use deepmorph::solver::observer::{Observer, Phase, SweepEvent};
+use deepmorph::solver::observer::{Initialisation, Observer, Phase, SweepEvent};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 /// How much the command line prints while a morph runs.
@@ -90,6 +90,13 @@ impl Progress {
 }
 
 impl Observer for Progress {
+    fn initialised(&mut self, initialisation: &Initialisation) {
+        // A warning, so also when quiet.
+        if let Some(warning) = initialisation.warning() {
+            eprintln!("{warning}");
+        }
+    }
+
     fn estimate(&mut self, estimate: &TimeEstimate) {
         if self.verbosity != Verbosity::Quiet {
             let total = duration(estimate.total());
