@@ -12,6 +12,7 @@ use crate::eval::metrics::{LandmarkResiduals, Metrics};
 use crate::eval::perceptual::feature_path;
 use crate::features::vgg::Vgg19;
 use crate::io::outputs::CONFIG;
+use crate::io::points::{landmarks_on_working_grid, pairs_of, read_points};
 use crate::io::truth::Correspondence;
 use crate::model::grid::host_values;
 
@@ -44,21 +45,35 @@ const ASPECT_TOLERANCE: f64 = 0.05;
 /// and measures it; with `truth`, also its endpoint error against that file; with `vgg19`
 /// (weights as for the deep model), also its path in VGG19 feature space. A truth must be
 /// at the size of the morph's first input (or, where that input cannot be read, of the same
-/// aspect as the working size); another size is refused unless `resample_truth`.
+/// aspect as the working size); another size is refused unless `resample_truth`. With
+/// `points` (a points file as for `--points`, in the inputs' own pixels), the landmark
+/// residuals are measured on those pairs instead of the run's own (held-out points, or a
+/// run made without any).
 ///
 /// # Errors
 ///
 /// A missing or malformed file, a record that disagrees with the files, a truth of another
-/// size, unreadable weights.
+/// size, unreadable weights, points that do not fit the inputs.
 pub fn evaluate(
     dir: &Path,
     truth: Option<&Path>,
     resample_truth: bool,
     vgg19: Option<&Path>,
+    points: Option<&Path>,
     device: &Device,
 ) -> Result<Evaluation> {
     let folder = MorphFolder::read(dir, device)?;
-    let record = RunRecord::read(&dir.join(CONFIG))?;
+    let mut record = RunRecord::read(&dir.join(CONFIG))?;
+    if let Some(path) = points {
+        let pairs = read_points(path)?;
+        let working = (record.working_size[0], record.working_size[1]);
+        let (size_a, size_b) = match &record.inputs {
+            Inputs::Files { a, b } => (input_size(a)?, input_size(b)?),
+            Inputs::Demo => (working, working),
+        };
+        let landmarks = landmarks_on_working_grid(&pairs, size_a, size_b, working)?;
+        record.landmarks = Some(pairs_of(&landmarks));
+    }
     let (h, w) = (folder.grid.height(), folder.grid.width());
     let disagree = |detail: String| Error::Format {
         path: dir.join(CONFIG),
@@ -127,6 +142,15 @@ pub(crate) fn landmark_residuals(
         (h, w),
         &pairs,
     )))
+}
+
+/// The `(rows, columns)` of an input image, from its header.
+fn input_size(path: &Path) -> Result<(usize, usize)> {
+    let (w, h) = image::image_dimensions(path).map_err(|e| Error::Format {
+        path: path.to_path_buf(),
+        detail: format!("cannot read the input's size to place the points: {e}"),
+    })?;
+    Ok((h as usize, w as usize))
 }
 
 /// Refuses a truth whose size is not the first input's (see [`evaluate`]).

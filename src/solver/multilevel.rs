@@ -48,9 +48,10 @@ pub struct MultilevelConfig {
     pub landmark_weight: f64,
 }
 
-/// The default landmark weight `γ` (SPEC §11). Provisional: chosen on synthetic translated
-/// pairs (a landmark pair met to within a working pixel at 64², tests/suite/cli.rs); SPEC's
-/// measurement on hand-placed real landmarks at 256² is still to be made.
+/// The default landmark weight `γ` (SPEC §11), measured: on hand-placed landmarks
+/// (`docs/examples/points/`, six pairs on faces and on cat_dog, default 256² RGB morphs) the
+/// smallest of 1, 3, 10 that meets every point to within a working pixel (max 0.71 and
+/// 0.26 px; γ = 3 leaves 1.15 and 2.54 px) with no step folding (docs/results.md).
 pub const DEFAULT_LANDMARK_WEIGHT: f64 = 10.0;
 
 fn default_landmark_weight() -> f64 {
@@ -309,8 +310,8 @@ impl Multilevel {
     /// Starts the coarsest level from SPEC §11's initial path for the global map `map`
     /// (given on the working grid, A's pixel coordinates to B's; see
     /// [`crate::solver::initial`]) instead of `φ = Id` and the cross-fade. With landmarks
-    /// ([`with_landmarks`](Self::with_landmarks)) the coarsest level starts from that path
-    /// even without a map (then `G = Id`), carrying each landmark along its line.
+    /// ([`with_landmarks`](Self::with_landmarks)) and `γ > 0` the coarsest level starts from
+    /// that path even without a map (then `G = Id`), carrying each landmark along its line.
     pub fn with_alignment(mut self, map: GlobalMap) -> Self {
         self.alignment = Some(map);
         self
@@ -355,6 +356,14 @@ impl Multilevel {
     pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
         self.inject_nonfinite = Some((level, sweep));
         self
+    }
+
+    /// The landmarks when they steer the path: with `γ = 0` they are only measured (the
+    /// term is 0, and the coarsest level does not start from them).
+    fn steering_landmarks(&self) -> Option<&Landmarks> {
+        self.landmarks
+            .as_ref()
+            .filter(|_| self.config.landmark_weight > 0.0)
     }
 
     /// The settings.
@@ -457,12 +466,12 @@ impl Multilevel {
                     },
                     resume.state.clone(),
                 ),
-                (None, None) if self.alignment.is_some() || self.landmarks.is_some() => {
+                (None, None) if self.alignment.is_some() || self.steering_landmarks().is_some() => {
                     let map = self
                         .alignment
                         .unwrap_or_else(GlobalMap::identity)
                         .on_grid((h, w), (lh, lw));
-                    let landmarks = self.landmarks.as_ref().map(|l| l.on_grid((lh, lw)));
+                    let landmarks = self.steering_landmarks().map(|l| l.on_grid((lh, lw)));
                     let (state, initialisation) = initial_state(
                         &grid,
                         &layout,

@@ -1214,7 +1214,8 @@ fn a_path_that_is_not_utf8_is_refused_before_any_work() {
 /// spot onto B's (it is printed and recorded in `config.json`) and the morph ends with the
 /// spot far nearer B's than plain metamorphosis leaves it (not on it: for so small a spot
 /// the cross-fade has the lower energy, and the path drifts back towards it; solver.rs
-/// `an_aligned_start_carries_the_blob`); from the landmarks, the least-squares map;
+/// `an_aligned_start_carries_the_blob`; `eval --points` measures that on the plain run);
+/// from the landmarks, the least-squares map;
 /// every combination that cannot work is refused in one line before any work.
 #[test]
 fn align_estimates_the_map_records_it_and_carries_the_spot() {
@@ -1267,6 +1268,25 @@ fn align_estimates_the_map_records_it_and_carries_the_spot() {
         carried < 0.5 * faded,
         "|Φ(p) − q| = {carried} px aligned, {faded} px plain"
     );
+    // `eval --points` measures a run made without points.
+    let spot = dir.join("spot.csv");
+    std::fs::write(
+        &spot,
+        format!("x_a,y_a,x_b,y_b\n{},{},{},{}\n", p[1], p[0], q[1], q[0]),
+    )
+    .unwrap();
+    deepmorph()
+        .arg("eval")
+        .arg(&plain)
+        .arg("--points")
+        .arg(&spot)
+        .args(["--write", "-q"])
+        .assert()
+        .success();
+    let metrics: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(plain.join("metrics.json")).unwrap()).unwrap();
+    let measured = metrics["landmarks"]["max"].as_f64().unwrap();
+    assert!((measured - faded).abs() < 1e-6, "{measured} against {faded}");
 
     // From two landmarks placed on a pure shift: that shift, exactly.
     let points = dir.join("points.csv");

@@ -330,13 +330,31 @@ fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
     let a = blob(&grid, p[0], p[1], 2.5);
     let b = blob(&grid, q[0], q[1], 2.5);
     let config = small(4, 3, 60);
-    let (plain, _) = run(&device, config, a.clone(), b.clone());
+    let (plain, plain_watch) = run(&device, config, a.clone(), b.clone());
     let missed = landmark_residual(&plain, p, q);
     assert!(
         missed > 8.0,
         "plain metamorphosis moved the blob: |Φ(p) − q| = {missed}"
     );
     let landmarks = Landmarks::new(vec![p], vec![q], (n, n)).unwrap();
+    // γ = 0 measures the landmarks without steering: plain metamorphosis, sweep for sweep.
+    let mut unweighted = Watch::default();
+    Multilevel::new(MultilevelConfig {
+        landmark_weight: 0.0,
+        ..config
+    })
+    .unwrap()
+    .with_landmarks(landmarks.clone())
+    .run(
+        &device,
+        a.clone(),
+        b.clone(),
+        &mut unweighted,
+        &AtomicBool::new(false),
+    )
+    .unwrap();
+    assert!(unweighted.initialisations.is_empty());
+    assert_eq!(unweighted.energies, plain_watch.energies);
     for schedule in [Schedule::Sequential, Schedule::Batched] {
         let mut config = config;
         config.ipalm.schedule = schedule;

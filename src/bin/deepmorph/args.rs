@@ -96,7 +96,7 @@ pub struct RunArgs {
     /// y the row in each image's own pixels, origin at the centre of the top-left pixel.
     #[arg(long, value_name = "FILE")]
     points: Option<PathBuf>,
-    #[arg(long, value_name = "GAMMA", allow_negative_numbers = true, help = default("Weight gamma of the landmark term (SPEC §11; used with --points)", rgb().solver.landmark_weight))]
+    #[arg(long, value_name = "GAMMA", allow_negative_numbers = true, help = default("Weight gamma of the landmark term (SPEC §11; used with --points; 0 measures the points in metrics.json without steering)", rgb().solver.landmark_weight))]
     landmark_weight: Option<f64>,
     /// Start the coarsest level from a global map of A onto B (SPEC §11): from the --points
     /// by least squares when given (similarity: 2 pairs or more, affine: 3), otherwise
@@ -399,6 +399,10 @@ pub(crate) enum Command {
         /// (deep morphs record it in metrics.json themselves).
         #[arg(long, value_name = "FILE")]
         vgg19: Option<PathBuf>,
+        /// Landmark pairs to measure |Phi(p) - q| on (as for --points, in the inputs' own
+        /// pixels) instead of the run's own: held-out points, or a run made without any.
+        #[arg(long, value_name = "FILE")]
+        points: Option<PathBuf>,
         /// Write metrics.json and the composed map (composed.json, composed.f32) into DIR.
         #[arg(long)]
         write: bool,

@@ -59,6 +59,7 @@ fn run(cli: Cli) -> Result<i32> {
             truth,
             resample_truth,
             vgg19,
+            points,
             write,
             backend,
             quiet,
@@ -69,6 +70,7 @@ fn run(cli: Cli) -> Result<i32> {
                 truth.as_deref(),
                 resample_truth,
                 vgg19.as_deref(),
+                points.as_deref(),
                 &device,
             )?;
             if !quiet {
