@@ -3,7 +3,8 @@
 //! its own subfolder `segment_01`, `segment_02`, … exactly as `deepmorph morph` writes a
 //! morph, and the whole chain as one continuous animation beside them (`morph.mp4`,
 //! `morph.apng`, `morph.gif`: segment 1's frames, then each later segment's without its
-//! first, which is the previous segment's last).
+//! first, which is the previous segment's last). Landmarks go to the segment they name
+//! ([`split_by_segment`]); `--align` estimates each segment's own map.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -18,6 +19,7 @@ use crate::eval::metrics::Metrics;
 use crate::io::animation::VideoFormat;
 use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{is_morph_output, written_name};
+use crate::io::points::{PointPair, split_by_segment};
 use crate::solver::observer::{Observer, Termination};
 
 /// The most images a chain takes (a bound on the work a typo can start).
@@ -87,12 +89,13 @@ impl ChainOutcome {
 
 impl ChainJob {
     /// Checks `config`, reads the images, resolves the working size from the first and
-    /// prepares every segment at that size (refusing what would not fit in memory).
+    /// prepares every segment at that size (refusing what would not fit in memory), each
+    /// with the landmark pairs that name it.
     ///
     /// # Errors
     ///
-    /// Fewer than 3 or more than [`MAX_IMAGES`] images, or what [`MorphJob::prepare`]
-    /// refuses.
+    /// Fewer than 3 or more than [`MAX_IMAGES`] images, a landmark pair of no segment or of
+    /// one the images do not give, or what [`MorphJob::prepare`] refuses.
     pub fn prepare(config: MorphConfig, images: Vec<PathBuf>) -> Result<Self> {
         if !(3..=MAX_IMAGES).contains(&images.len()) {
             return Err(Error::invalid(
@@ -101,22 +104,10 @@ impl ChainJob {
                 format!("3 to {MAX_IMAGES} for a chain (two images are one morph)"),
             ));
         }
-        if config.points.is_some() {
-            return Err(Error::invalid(
-                "points",
-                "landmarks for a chain",
-                "landmarks for one pair of images: a chain does not take them yet (morph \
-                 each pair with its own --points)",
-            ));
-        }
-        if !config.align.is_none() {
-            return Err(Error::invalid(
-                "align",
-                config.align.name(),
-                "none for a chain: it does not align its segments yet (morph each pair with \
-                 its own --align)",
-            ));
-        }
+        let mut per_segment = match &config.points {
+            Some(points) => split_by_segment(points, images.len() - 1)?,
+            None => vec![None; images.len() - 1],
+        };
         let pair = |config: MorphConfig, i: usize| {
             MorphJob::prepare(
                 config,
@@ -126,13 +117,18 @@ impl ChainJob {
                 },
             )
         };
-        let first = pair(config.clone(), 0)?;
+        let with_points = |config: &MorphConfig, points: &mut Option<Vec<PointPair>>| {
+            let mut config = config.clone();
+            config.points = points.take();
+            config
+        };
+        let first = pair(with_points(&config, &mut per_segment[0]), 0)?;
         let (height, width) = first.working_size();
         let mut exact = config;
         exact.size = WorkingSize::Exact { height, width };
         let mut segments = vec![first];
-        for i in 1..images.len() - 1 {
-            segments.push(pair(exact.clone(), i)?);
+        for (i, points) in per_segment.iter_mut().enumerate().skip(1) {
+            segments.push(pair(with_points(&exact, points), i)?);
         }
         Ok(Self { segments, images })
     }

@@ -29,7 +29,7 @@ use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{
     CONFIG, METRICS, contact_sheet, is_morph_output, save_composed, save_deformations, write_frames,
 };
-use crate::io::points::{landmarks_on_working_grid, pairs_of};
+use crate::io::points::{landmarks_on_working_grid, pairs_of, split_by_segment};
 use crate::model::alignment::{
     AlignKind, GlobalMap, GreyImage, SearchRanges, estimate_from_images,
 };
@@ -175,7 +175,8 @@ impl MorphJob {
         let working = (images.0.height(), images.0.width());
         let landmarks = match &config.points {
             Some(points) => {
-                let landmarks = landmarks_on_working_grid(points, sizes.0, sizes.1, working)?;
+                let pairs = split_by_segment(points, 1)?.remove(0).unwrap_or_default();
+                let landmarks = landmarks_on_working_grid(&pairs, sizes.0, sizes.1, working)?;
                 for (i, j) in landmarks.crossings() {
                     notes.push(format!(
                         "warning: the straight paths of landmark pairs {} and {} meet: a \

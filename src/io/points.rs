@@ -2,9 +2,10 @@
 //! each in its own input file's pixel coordinates, and their mapping to the working grid.
 //!
 //! Two formats, told apart by the file's first non-blank character:
-//! - CSV with a header naming the columns `x_a,y_a,x_b,y_b` (in any order, nothing else):
-//!   one pair a line;
-//! - JSON: an array of `{"a": [x, y], "b": [x, y]}`.
+//! - CSV with a header naming the columns `x_a,y_a,x_b,y_b` (in any order), and for a chain
+//!   optionally `segment` (1 for the first pair of images, 2 for the next, …): one pair a
+//!   line;
+//! - JSON: an array of `{"a": [x, y], "b": [x, y]}`, with `"segment": n` for a chain.
 //!
 //! `x` is the column and `y` the row, with the origin at the centre of the top-left pixel;
 //! fractional values are allowed.
@@ -26,10 +27,74 @@ pub struct PointPair {
     pub a: [f64; 2],
     /// The point of B, `[x, y]`.
     pub b: [f64; 2],
+    /// In a chain, the segment the pair belongs to (1 = the first two images); `None` in a
+    /// morph of two images.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub segment: Option<usize>,
+}
+
+impl PointPair {
+    /// The pair `a` → `b`, of no particular segment.
+    pub fn new(a: [f64; 2], b: [f64; 2]) -> Self {
+        Self {
+            a,
+            b,
+            segment: None,
+        }
+    }
 }
 
 /// The columns a CSV points file must have.
 const COLUMNS: [&str; 4] = ["x_a", "y_a", "x_b", "y_b"];
+
+/// The optional column of a chain's CSV points file.
+const SEGMENT: &str = "segment";
+
+/// The pairs of each of `segments` segments (`None`: a segment without pairs). Pairs that
+/// name no segment belong to the only one of a morph of two images.
+///
+/// # Errors
+///
+/// [`Error::InvalidParameter`] for a segment number out of `1..=segments`, or, in a chain,
+/// a pair that names no segment.
+pub fn split_by_segment(
+    pairs: &[PointPair],
+    segments: usize,
+) -> Result<Vec<Option<Vec<PointPair>>>> {
+    let mut out: Vec<Vec<PointPair>> = vec![Vec::new(); segments];
+    for (i, pair) in pairs.iter().enumerate() {
+        let segment = match pair.segment {
+            Some(s) if (1..=segments).contains(&s) => s,
+            Some(s) => {
+                return Err(Error::invalid(
+                    "points",
+                    format!("pair {}: segment {s}", i + 1),
+                    format!(
+                        "a segment in 1..={segments} (the images give {segments} consecutive \
+                         pair(s))"
+                    ),
+                ));
+            }
+            None if segments == 1 => 1,
+            None => {
+                return Err(Error::invalid(
+                    "points",
+                    format!("pair {} of a chain names no segment", i + 1),
+                    "a `segment` column (1 = the first two images), or one --points file per \
+                     segment, in order",
+                ));
+            }
+        };
+        out[segment - 1].push(PointPair {
+            segment: None,
+            ..*pair
+        });
+    }
+    Ok(out
+        .into_iter()
+        .map(|p| (!p.is_empty()).then_some(p))
+        .collect())
+}
 
 /// Reads a points file (at most 16 MiB).
 ///
@@ -80,7 +145,9 @@ fn parse_csv(text: &str) -> std::result::Result<Vec<PointPair>, String> {
             COLUMNS.join(",")
         )
     };
-    if header.len() != COLUMNS.len() {
+    let segment_at = header.iter().position(|h| *h == SEGMENT);
+    let columns = COLUMNS.len() + usize::from(segment_at.is_some());
+    if header.len() != columns {
         return Err(format!(
             "header `{}`: expected {}",
             header.join(","),
@@ -95,14 +162,24 @@ fn parse_csv(text: &str) -> std::result::Result<Vec<PointPair>, String> {
     lines
         .map(|(i, line)| {
             let cells: Vec<&str> = line.split(',').map(str::trim).collect();
-            if cells.len() != COLUMNS.len() {
+            if cells.len() != columns {
                 return Err(format!(
-                    "line {}: {} values, expected {}",
+                    "line {}: {} values, expected {columns}",
                     i + 1,
                     cells.len(),
-                    COLUMNS.len()
                 ));
             }
+            let segment = segment_at
+                .map(|at| {
+                    let cell = cells[at];
+                    cell.parse::<usize>()
+                        .ok()
+                        .filter(|&s| s >= 1)
+                        .ok_or_else(|| {
+                            format!("line {}: segment = `{cell}` is not a number ≥ 1", i + 1)
+                        })
+                })
+                .transpose()?;
             let value = |column: usize| -> std::result::Result<f64, String> {
                 let cell = cells[at[column]];
                 cell.parse::<f64>().map_err(|_| {
@@ -116,6 +193,7 @@ fn parse_csv(text: &str) -> std::result::Result<Vec<PointPair>, String> {
             Ok(PointPair {
                 a: [value(0)?, value(1)?],
                 b: [value(2)?, value(3)?],
+                segment,
             })
         })
         .collect()
@@ -175,10 +253,7 @@ pub fn pairs_of(landmarks: &Landmarks) -> Vec<PointPair> {
     let (a, b) = landmarks.pairs();
     a.iter()
         .zip(b)
-        .map(|(p, q)| PointPair {
-            a: [p[1], p[0]],
-            b: [q[1], q[0]],
-        })
+        .map(|(p, q)| PointPair::new([p[1], p[0]], [q[1], q[0]]))
         .collect()
 }
 
@@ -191,17 +266,42 @@ mod tests {
         let csv = "y_a, x_a,x_b,y_b\n2,3,4.5,6\n\n7,8,9,10\n";
         let json = r#"[{"a": [3, 2], "b": [4.5, 6]}, {"a": [8, 7], "b": [9, 10]}]"#;
         let expected = vec![
-            PointPair {
-                a: [3.0, 2.0],
-                b: [4.5, 6.0],
-            },
-            PointPair {
-                a: [8.0, 7.0],
-                b: [9.0, 10.0],
-            },
+            PointPair::new([3.0, 2.0], [4.5, 6.0]),
+            PointPair::new([8.0, 7.0], [9.0, 10.0]),
         ];
         assert_eq!(parse_points(csv).unwrap(), expected);
         assert_eq!(parse_points(json).unwrap(), expected);
+    }
+
+    #[test]
+    fn a_chain_names_the_segment_of_each_pair() {
+        let csv = "segment,x_a,y_a,x_b,y_b\n2,3,2,4.5,6\n1,8,7,9,10\n";
+        let json = r#"[{"a": [3, 2], "b": [4.5, 6], "segment": 2},
+                       {"a": [8, 7], "b": [9, 10], "segment": 1}]"#;
+        for text in [csv, json] {
+            let pairs = parse_points(text).unwrap();
+            assert_eq!(pairs[0].segment, Some(2));
+            let split = split_by_segment(&pairs, 3).unwrap();
+            assert_eq!(
+                split,
+                vec![
+                    Some(vec![PointPair::new([8.0, 7.0], [9.0, 10.0])]),
+                    Some(vec![PointPair::new([3.0, 2.0], [4.5, 6.0])]),
+                    None
+                ]
+            );
+            let err = split_by_segment(&pairs, 1).unwrap_err().to_string();
+            assert!(err.contains("segment 2") && err.contains("1..=1"), "{err}");
+        }
+        let plain = parse_points("x_a,y_a,x_b,y_b\n1,2,3,4\n").unwrap();
+        assert_eq!(
+            split_by_segment(&plain, 1).unwrap(),
+            vec![Some(plain.clone())]
+        );
+        let err = split_by_segment(&plain, 2).unwrap_err().to_string();
+        assert!(err.contains("names no segment"), "{err}");
+        let bad = parse_points("segment,x_a,y_a,x_b,y_b\n0,1,2,3,4\n").unwrap_err();
+        assert!(bad.contains("segment = `0`"), "{bad}");
     }
 
     #[test]
@@ -232,17 +332,14 @@ mod tests {
         assert_eq!(to_working(0.5, 4, 2), 0.0);
         assert_eq!(to_working(2.5, 4, 2), 1.0);
         assert_eq!(to_working(1.25, 7, 7), 1.25);
-        let pairs = [PointPair {
-            a: [10.0, 5.0],
-            b: [20.0, 30.0],
-        }];
+        let pairs = [PointPair::new([10.0, 5.0], [20.0, 30.0])];
         let l = landmarks_on_working_grid(&pairs, (40, 40), (80, 40), (40, 40)).unwrap();
         // B is 80 rows high: its row 30 is row (30.5)/2 − 0.5 = 14.75 at 40 rows.
         assert_eq!(l.pairs(), (&[[5.0, 10.0]][..], &[[14.75, 20.0]][..]));
         assert_eq!(pairs_of(&l)[0].b, [20.0, 14.75]);
         // One pair on 40² images and a 40² working grid.
         let refused = |a: [f64; 2]| {
-            let pair = PointPair { a, b: [20.0, 30.0] };
+            let pair = PointPair::new(a, [20.0, 30.0]);
             landmarks_on_working_grid(&[pair], (40, 40), (40, 40), (40, 40))
                 .unwrap_err()
                 .to_string()

@@ -1166,20 +1166,25 @@ fn bad_points_fail_with_a_clear_message() {
         Some("x_a,y_a,x_b,y_b\n5,5,6,6\n5,5,7,7\n"),
         "points 1 and 2 of A",
     );
-    // A chain takes no landmarks yet.
+    // A chain needs the segment of every pair: a column, or one file per segment.
     let file = dir.join("points.csv");
+    let chain = |files: &[&Path], expected: &str| {
+        let mut command = deepmorph();
+        command.arg("morph").args([&a, &b, &c]).arg("-o").arg(&out);
+        for f in files {
+            command.arg("--points").arg(f);
+        }
+        let err = fails(command.args(TINY));
+        assert!(err.contains(expected), "{expected}: {err}");
+        assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+        assert!(!out.exists(), "nothing written");
+    };
     std::fs::write(&file, "x_a,y_a,x_b,y_b\n5,5,6,6\n").unwrap();
-    let err = fails(
-        deepmorph()
-            .arg("morph")
-            .args([&a, &b, &c])
-            .arg("-o")
-            .arg(&out)
-            .arg("--points")
-            .arg(&file)
-            .args(TINY),
-    );
-    assert!(err.contains("chain"), "{err}");
+    chain(&[&file], "names no segment");
+    chain(&[&file, &file, &file], "3 --points files for 3 images");
+    std::fs::write(&file, "segment,x_a,y_a,x_b,y_b\n3,5,5,6,6\n").unwrap();
+    chain(&[&file], "segment 3");
+    chain(&[&file, &file], "takes no segment column");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -1286,7 +1291,10 @@ fn align_estimates_the_map_records_it_and_carries_the_spot() {
     let metrics: serde_json::Value =
         serde_json::from_slice(&std::fs::read(plain.join("metrics.json")).unwrap()).unwrap();
     let measured = metrics["landmarks"]["max"].as_f64().unwrap();
-    assert!((measured - faded).abs() < 1e-6, "{measured} against {faded}");
+    assert!(
+        (measured - faded).abs() < 1e-6,
+        "{measured} against {faded}"
+    );
 
     // From two landmarks placed on a pure shift: that shift, exactly.
     let points = dir.join("points.csv");
@@ -1341,7 +1349,6 @@ fn align_estimates_the_map_records_it_and_carries_the_spot() {
         &[&a, &b],
         "--init",
     );
-    refused(&[os("--align"), os("affine")], &[&a, &b, &c], "chain");
     std::fs::write(
         &points,
         "x_a,y_a,x_b,y_b\n10,10,37,10\n37,10,10,10\n10,37,10,37\n",
@@ -1357,5 +1364,67 @@ fn align_estimates_the_map_records_it_and_carries_the_spot() {
         &[&a, &b],
         "reflect",
     );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A chain steered by landmarks: one file with a `segment` column, or one file per segment;
+/// each segment meets its own pairs to within a working pixel and records only them.
+#[test]
+fn a_chain_takes_the_points_of_each_segment() {
+    let dir = scratch("chain_points");
+    let images: Vec<PathBuf> = ["a", "b", "c"]
+        .iter()
+        .map(|n| dir.join(format!("{n}.png")))
+        .collect();
+    // Spots at (row, col) 9.6/8.96, 21.44/22.08, 9.6/22.08 of 32.
+    write_image(&images[0], 32, 32, 0.3, 0.28);
+    write_image(&images[1], 32, 32, 0.67, 0.69);
+    write_image(&images[2], 32, 32, 0.3, 0.69);
+    let (p, q, r) = ([9.6, 8.96], [21.44, 22.08], [9.6, 22.08]);
+    let column = dir.join("points.csv");
+    std::fs::write(
+        &column,
+        format!(
+            "segment,x_a,y_a,x_b,y_b\n2,{},{},{},{}\n1,{},{},{},{}\n",
+            q[1], q[0], r[1], r[0], p[1], p[0], q[1], q[0]
+        ),
+    )
+    .unwrap();
+    let (first, second) = (dir.join("first.csv"), dir.join("second.csv"));
+    let csv = |from: [f64; 2], to: [f64; 2]| {
+        format!(
+            "x_a,y_a,x_b,y_b\n{},{},{},{}\n",
+            from[1], from[0], to[1], to[0]
+        )
+    };
+    std::fs::write(&first, csv(p, q)).unwrap();
+    std::fs::write(&second, csv(q, r)).unwrap();
+    for (name, files) in [("column", vec![&column]), ("files", vec![&first, &second])] {
+        let out = dir.join(name);
+        let mut command = deepmorph();
+        command.arg("morph").args(&images).arg("-o").arg(&out);
+        for f in files {
+            command.arg("--points").arg(f);
+        }
+        command
+            .args(["-q", "-K", "4", "--levels", "3", "--sweeps", "60"])
+            .args(["--size", "32x32", "--backend", "flex", "--video", "gif"])
+            .assert()
+            .success();
+        for (segment, (from, to)) in [(1, (p, q)), (2, (q, r))] {
+            let folder = out.join(format!("segment_0{segment}"));
+            let met = landmark_residual(&folder, from, to);
+            assert!(
+                met < 1.0,
+                "{name}, segment {segment}: |Φ(p) − q| = {met} px"
+            );
+            let record: serde_json::Value =
+                serde_json::from_slice(&std::fs::read(folder.join("config.json")).unwrap())
+                    .unwrap();
+            let pairs = record["config"]["points"].as_array().unwrap();
+            assert_eq!(pairs.len(), 1, "{name}, segment {segment}: {pairs:?}");
+            assert_eq!(pairs[0]["a"][1].as_f64().unwrap(), from[0]);
+        }
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }

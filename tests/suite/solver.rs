@@ -354,7 +354,12 @@ fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
     )
     .unwrap();
     assert!(unweighted.initialisations.is_empty());
-    assert_eq!(unweighted.energies, plain_watch.energies);
+    // Bit for bit on the CPU backends; wgpu's reductions may differ in the last bits.
+    let (zero, plain_e) = (unweighted.energies.concat(), plain_watch.energies.concat());
+    assert_eq!(zero.len(), plain_e.len());
+    for (z, e) in zero.iter().zip(&plain_e) {
+        assert!((z - e).abs() <= 1e-9 * e.abs(), "γ = 0: E = {z}, plain {e}");
+    }
     for schedule in [Schedule::Sequential, Schedule::Batched] {
         let mut config = config;
         config.ipalm.schedule = schedule;

@@ -12,7 +12,7 @@ use deepmorph::app::config::{
 };
 use deepmorph::eval::synthetic::Field;
 use deepmorph::io::animation::{DEFAULT_QUALITY, VideoFormat};
-use deepmorph::io::points::read_points;
+use deepmorph::io::points::{PointPair, read_points};
 use deepmorph::model::feature_model::DeepConfig;
 use deepmorph::{Backend, EnergyParams};
 
@@ -93,9 +93,11 @@ pub struct RunArgs {
     schedule: Option<deepmorph::solver::ipalm::Schedule>,
     /// Landmark pairs that steer the path (SPEC §11): a CSV with the header x_a,y_a,x_b,y_b
     /// (one pair a line) or a JSON array of {"a": [x, y], "b": [x, y]}; x is the column and
-    /// y the row in each image's own pixels, origin at the centre of the top-left pixel.
-    #[arg(long, value_name = "FILE")]
-    points: Option<PathBuf>,
+    /// y the row in each image's own pixels, origin at the centre of the top-left pixel. A
+    /// chain takes a `segment` column (1 = the first two images) or one --points per
+    /// segment, in order.
+    #[arg(long, value_name = "FILE", action = clap::ArgAction::Append)]
+    points: Vec<PathBuf>,
     #[arg(long, value_name = "GAMMA", allow_negative_numbers = true, help = default("Weight gamma of the landmark term (SPEC §11; used with --points; 0 measures the points in metrics.json without steering)", rgb().solver.landmark_weight))]
     landmark_weight: Option<f64>,
     /// Start the coarsest level from a global map of A onto B (SPEC §11): from the --points
@@ -242,9 +244,28 @@ impl RunArgs {
         solver.tolerance = self.tol.unwrap_or(solver.tolerance);
         solver.landmark_weight = self.landmark_weight.unwrap_or(solver.landmark_weight);
         config.align = self.align.unwrap_or(config.align);
-        if let Some(path) = &self.points {
-            config.points = Some(read_points(path)?);
-        }
+        config.points = match self.points.as_slice() {
+            [] => config.points,
+            [one] => Some(read_points(one)?),
+            files => {
+                let mut all = Vec::new();
+                for (i, path) in files.iter().enumerate() {
+                    let pairs = read_points(path)?;
+                    if pairs.iter().any(|p| p.segment.is_some()) {
+                        bail!(
+                            "{}: a file of one segment (one --points per segment) takes no \
+                             segment column",
+                            path.display()
+                        );
+                    }
+                    all.extend(pairs.into_iter().map(|p| PointPair {
+                        segment: Some(i + 1),
+                        ..p
+                    }));
+                }
+                Some(all)
+            }
+        };
         if let Some(deep) = &mut config.deep {
             let f = &mut deep.features;
             f.eta = self.eta.unwrap_or(f.eta);
@@ -294,6 +315,15 @@ pub(crate) fn morph_request(
     config.size = working_size(size, max_side, config.size);
     if run.resume.is_some() && !images.is_empty() {
         bail!("--resume continues the recorded morph: give no images");
+    }
+    if run.points.len() > 1 && run.points.len() + 1 != images.len() {
+        bail!(
+            "{} --points files for {} images: give one per consecutive pair of images ({} \
+             here), or one file with a segment column",
+            run.points.len(),
+            images.len(),
+            images.len().saturating_sub(1)
+        );
     }
     let inputs = match (images.len(), recorded) {
         (0, Some(recorded)) => recorded,
