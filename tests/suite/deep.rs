@@ -9,13 +9,16 @@ use std::sync::atomic::AtomicBool;
 
 use burn::tensor::{DType, Device, Tensor, TensorData};
 use common::{device, reference_backend, values};
+use deepmorph::eval::metrics::{LandmarkResiduals, compose};
 use deepmorph::features::deep::deep_features;
 use deepmorph::features::vgg::architecture::conv_shapes;
 use deepmorph::features::vgg::weights::ConvWeights;
 use deepmorph::features::vgg::{Vgg19, Vgg19Weights};
+use deepmorph::model::alignment::GlobalMap;
+use deepmorph::model::energy::landmarks::Landmarks;
 use deepmorph::model::feature_model::{DeepConfig, FeatureModel};
 use deepmorph::solver::multilevel::{Morph, Multilevel, MultilevelConfig};
-use deepmorph::solver::observer::{Observer, Phase, SweepEvent};
+use deepmorph::solver::observer::{Initialisation, Observer, Phase, SweepEvent};
 use deepmorph::{EnergyParams, Precision};
 
 fn random_vgg(device: &Device) -> Vgg19 {
@@ -271,4 +274,44 @@ fn feature_space_path_distances() {
     let faded = feature_path(&vgg, &grid, &fade).unwrap();
     assert_eq!(faded.morph, faded.crossfade);
     assert!(feature_path(&vgg, &grid, &shifted[..1]).is_err());
+}
+
+/// SPEC §11 in the deep model: an initial alignment and landmarks start the coarsest level
+/// from carried feature maps (3 + 128 channels there) and steer the path: the pair is met to
+/// within a working pixel, every step taken whole from the start, every energy finite.
+#[test]
+fn landmarks_and_alignment_steer_a_deep_morph() {
+    let device = device(reference_backend(), Precision::F32, true);
+    let (a, b) = (image(32, 32, 0.0, &device), image(32, 32, 6.0, &device));
+    let vgg = random_vgg(&device);
+    let deep = DeepConfig {
+        pre_sweeps: 3,
+        ..DeepConfig::default()
+    };
+    let model = FeatureModel::Deep(deep_features(&vgg, a.clone(), b.clone(), deep).unwrap());
+    let (p, q) = ([12.0, 10.0], [18.0, 17.0]);
+    let landmarks = Landmarks::new(vec![p], vec![q], (32, 32)).unwrap();
+    let shift = GlobalMap::similarity([0.0, 0.0], 0.0, 1.0, [6.0, 0.0]);
+    #[derive(Default)]
+    struct Start(Vec<Initialisation>, Events);
+    impl Observer for Start {
+        fn sweep(&mut self, e: &SweepEvent<'_>) {
+            self.1.sweep(e);
+        }
+        fn initialised(&mut self, initialisation: &Initialisation) {
+            self.0.push(initialisation.clone());
+        }
+    }
+    let mut start = Start::default();
+    let morph = Multilevel::new(config(2, 30))
+        .unwrap()
+        .with_landmarks(landmarks)
+        .with_alignment(shift)
+        .run_with(&device, a, b, &model, &mut start, &AtomicBool::new(false))
+        .unwrap();
+    assert_eq!(start.0.len(), 1);
+    assert_eq!(start.0[0].halvings, vec![0; 3]);
+    let phi = values(compose(&morph.grid, morph.state.deformations()));
+    let met = LandmarkResiduals::of(&phi, (32, 32), &[(p, q)]).max;
+    assert!(met < 1.0, "|Φ(p) − q| = {met} px");
 }
