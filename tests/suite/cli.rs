@@ -1329,16 +1329,19 @@ fn align_estimates_the_map_records_it_and_carries_the_spot() {
         assert!(!out.exists(), "nothing written");
     };
     let os = |s: &'static str| std::ffi::OsStr::new(s);
-    refused(
-        &[
-            os("--align"),
-            os("affine"),
-            os("--points"),
-            points.as_os_str(),
-        ],
-        &[&a, &b],
-        "at least 3",
-    );
+    let affine_on_points = |expected: &str| {
+        refused(
+            &[
+                os("--align"),
+                os("affine"),
+                os("--points"),
+                points.as_os_str(),
+            ],
+            &[&a, &b],
+            expected,
+        );
+    };
+    affine_on_points("at least 3");
     refused(
         &[
             os("--align"),
@@ -1354,16 +1357,7 @@ fn align_estimates_the_map_records_it_and_carries_the_spot() {
         "x_a,y_a,x_b,y_b\n10,10,37,10\n37,10,10,10\n10,37,10,37\n",
     )
     .unwrap();
-    refused(
-        &[
-            os("--align"),
-            os("affine"),
-            os("--points"),
-            points.as_os_str(),
-        ],
-        &[&a, &b],
-        "reflect",
-    );
+    affine_on_points("reflect");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -327,8 +327,7 @@ fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
     let n = 32;
     let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
     let (p, q) = ([10.0, 9.0], [21.0, 22.0]);
-    let a = blob(&grid, p[0], p[1], 2.5);
-    let b = blob(&grid, q[0], q[1], 2.5);
+    let (a, b) = (blob(&grid, p[0], p[1], 2.5), blob(&grid, q[0], q[1], 2.5));
     let config = small(4, 3, 60);
     let (plain, plain_watch) = run(&device, config, a.clone(), b.clone());
     let missed = landmark_residual(&plain, p, q);
@@ -416,8 +415,7 @@ fn an_aligned_start_carries_the_blob(backend: Backend) {
     let n = 48;
     let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
     let (p, q) = ([16.0, 15.0], [30.0, 32.0]);
-    let a = blob(&grid, p[0], p[1], 3.0);
-    let b = blob(&grid, q[0], q[1], 3.0);
+    let (a, b) = (blob(&grid, p[0], p[1], 3.0), blob(&grid, q[0], q[1], 3.0));
     let config = small(4, 2, 40);
     let (plain, plain_watch) = run(&device, config, a.clone(), b.clone());
     let shift = GlobalMap::similarity([0.0, 0.0], 0.0, 1.0, [q[1] - p[1], q[0] - p[0]]);
