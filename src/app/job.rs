@@ -22,6 +22,7 @@ use crate::eval::perceptual::feature_path;
 use crate::features::deep::deep_features;
 use crate::features::vgg::Vgg19;
 use crate::features::vgg::architecture::tap_channels;
+use crate::io::animation::VideoFormat;
 use crate::io::checkpoint::{load_checkpoint, save_checkpoint};
 use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
@@ -173,6 +174,7 @@ impl MorphJob {
             check_draft(dir, &config, images.0.height(), images.0.width())?;
         }
         let working = (images.0.height(), images.0.width());
+        check_video_size(&config, working)?;
         let landmarks = match &config.points {
             Some(points) => {
                 let pairs = split_by_segment(points, 1)?.remove(0).unwrap_or_default();
@@ -400,6 +402,30 @@ impl MorphJob {
         })
     }
 }
+
+/// Refuses a working size the requested animations cannot encode, before any work: the
+/// H.264 encoder takes no frame side below [`MP4_MIN_SIDE`] pixels (it failed after the
+/// whole solve, issue 43 #7).
+///
+/// # Errors
+///
+/// [`Error::InvalidParameter`] naming the size and what would work.
+fn check_video_size(config: &MorphConfig, (h, w): (usize, usize)) -> Result<()> {
+    if config.video.contains(&VideoFormat::Mp4) && h.min(w) < MP4_MIN_SIDE {
+        return Err(Error::invalid(
+            "size",
+            format!("{w}x{h} (WxH)"),
+            format!(
+                "at least {MP4_MIN_SIDE} pixels on each side for morph.mp4 (the H.264 \
+                 encoder's smallest frame): a larger --size, or --video gif or apng"
+            ),
+        ));
+    }
+    Ok(())
+}
+
+/// The smallest frame side the H.264 encoder takes.
+pub const MP4_MIN_SIDE: usize = 16;
 
 /// SPEC §11's global map for `--align kind`: from the landmarks by least squares when there
 /// are any, otherwise from the images on the coarsest level (RGB resampled to its size,
