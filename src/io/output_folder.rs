@@ -128,12 +128,24 @@ impl OutputFolder {
                 ));
             }
         }
+        // Finding no other live writer and creating ours is one step under a lock on the
+        // parent: two runs into one target cannot both pass (issue 43 #1: both wrote, the
+        // last one's result silently replaced the first's). The lock is held for
+        // milliseconds; the live staging folder is what keeps a second run out.
+        let lock = ParentLock::take(&parent);
         remove_stale(&parent, &name);
+        if let Some(pid) = live_writer(&parent, &name) {
+            return Err(refuse(format!(
+                "is being written by another deepmorph run (process {pid}): wait for it to \
+                 finish or choose another -o"
+            )));
+        }
         let staging = parent.join(format!(".{name}{STAGING_TAG}{}", std::process::id()));
         if staging.exists() {
             std::fs::remove_dir_all(&staging).map_err(io_error(&staging))?;
         }
         std::fs::create_dir(&staging).map_err(unwritable)?;
+        drop(lock);
         let folder = Self {
             target: target_path,
             staging,
@@ -252,6 +264,39 @@ fn remove_stale(parent: &Path, name: &str) {
         } else {
             let _ = std::fs::remove_dir_all(entry.path());
         }
+    }
+}
+
+/// Another live process's staging folder for `name` in `parent` (run after
+/// [`remove_stale`]): its process id. Only where liveness can be known (Linux); elsewhere a
+/// killed run's folder would lock the target for good.
+fn live_writer(parent: &Path, name: &str) -> Option<u32> {
+    if !cfg!(target_os = "linux") {
+        return None;
+    }
+    let prefix = format!(".{name}{STAGING_TAG}");
+    std::fs::read_dir(parent).ok()?.flatten().find_map(|entry| {
+        let file_name = entry.file_name().to_string_lossy().into_owned();
+        let pid = file_name.strip_prefix(&prefix)?.parse::<u32>().ok()?;
+        (pid != std::process::id() && process_runs(pid)).then_some(pid)
+    })
+}
+
+/// An exclusive `flock` on a folder, released on drop; nothing where the file system does
+/// not lock (the check it guards then runs unguarded, as it did before).
+struct ParentLock(Option<std::fs::File>);
+
+impl ParentLock {
+    #[cfg(target_os = "linux")]
+    fn take(dir: &Path) -> Self {
+        use rustix::fs::{FlockOperation, flock};
+        let file = std::fs::File::open(dir).ok();
+        Self(file.filter(|f| flock(f, FlockOperation::LockExclusive).is_ok()))
+    }
+
+    #[cfg(not(target_os = "linux"))]
+    fn take(_: &Path) -> Self {
+        Self(None)
     }
 }
 

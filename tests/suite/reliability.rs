@@ -215,6 +215,28 @@ fn sigterm_and_sighup_write_outputs_like_ctrl_c() {
     }
 }
 
+/// A second run into the folder a run is writing is refused before any work, even with
+/// `--force`, and the first run's result arrives whole (issue 43 #1: both exited 0 and the
+/// folder held only the last).
+#[test]
+fn a_second_run_into_a_folder_being_written_is_refused() {
+    let (dir, out, mut child) = running_over_a_previous_morph("concurrent");
+    let err = fails(&mut quick_demo(&out, 2, &["--force"]));
+    assert!(
+        err.contains("another deepmorph run") && err.contains(&child.id().to_string()),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    signal(&child, "TERM");
+    assert_eq!(exit_code(&mut child), Some(130));
+    holds_one_morph(&out, 3);
+    nothing_else_in(&dir, &["out"]);
+    // Once the first has finished, the folder is free again.
+    quick_demo(&out, 2, &["--force"]).assert().success();
+    holds_one_morph(&out, 2);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// A second signal aborts at once; the folder then holds either the previous morph or the
 /// new one, complete, and no staging folder is left.
 #[test]
