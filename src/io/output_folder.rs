@@ -284,19 +284,24 @@ fn live_writer(parent: &Path, name: &str) -> Option<u32> {
 
 /// An exclusive `flock` on a folder, released on drop; nothing where the file system does
 /// not lock (the check it guards then runs unguarded, as it did before).
-struct ParentLock(Option<std::fs::File>);
+struct ParentLock {
+    /// Held only to be closed on drop, which releases the lock.
+    _file: Option<std::fs::File>,
+}
 
 impl ParentLock {
     #[cfg(target_os = "linux")]
     fn take(dir: &Path) -> Self {
         use rustix::fs::{FlockOperation, flock};
         let file = std::fs::File::open(dir).ok();
-        Self(file.filter(|f| flock(f, FlockOperation::LockExclusive).is_ok()))
+        Self {
+            _file: file.filter(|f| flock(f, FlockOperation::LockExclusive).is_ok()),
+        }
     }
 
     #[cfg(not(target_os = "linux"))]
     fn take(_: &Path) -> Self {
-        Self(None)
+        Self { _file: None }
     }
 }
 
