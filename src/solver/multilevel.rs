@@ -10,9 +10,10 @@ use burn::tensor::{Device, Tensor};
 
 use crate::error::{Error, Result};
 use crate::model::alignment::GlobalMap;
+use crate::model::deformation::admissible_each;
 use crate::model::energy::landmarks::{LandmarkTerm, Landmarks};
 use crate::model::feature_model::FeatureModel;
-use crate::model::grid::Grid;
+use crate::model::grid::{Grid, to_host};
 use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
 use crate::model::resample::Resize;
@@ -322,7 +323,8 @@ impl Multilevel {
     ///
     /// # Errors
     ///
-    /// If the draft's `K` is not this morph's.
+    /// If the draft's `K` is not this morph's, a deformation of it is not admissible (SPEC
+    /// §0), or a frame is not finite.
     pub fn with_draft(mut self, draft: Draft) -> Result<Self> {
         let k = draft.deformations.dims()[0];
         if k != self.config.steps || draft.frames.len() != k + 1 {
@@ -334,6 +336,35 @@ impl Multilevel {
                     draft.frames.len()
                 ),
             ));
+        }
+        // A draft is a file a user can edit: one whose steps are not admissible (folded,
+        // moved on the border, not finite) would be prolongated into a path the solver cannot
+        // start from (issue 43 #13: it silently restarted from the identity).
+        let bad: Vec<usize> = admissible_each(&draft.grid, draft.deformations.clone())
+            .into_iter()
+            .enumerate()
+            .filter_map(|(i, ok)| (!ok).then_some(i + 1))
+            .collect();
+        if let Some(&first) = bad.first() {
+            return Err(Error::invalid(
+                "init",
+                format!(
+                    "a draft whose deformation {first} (of {} not admissible) folds, moves the \
+                     border or is not finite",
+                    bad.len()
+                ),
+                "a finished morph's deformations: finite, the identity on the border, det ∇φ > 0",
+            ));
+        }
+        for (i, frame) in draft.frames.iter().enumerate() {
+            let finite = to_host(frame.clone().abs().max())[0].is_finite();
+            if !finite {
+                return Err(Error::invalid(
+                    "init",
+                    format!("a draft whose frame {i} is not finite"),
+                    "a finished morph's frames",
+                ));
+            }
         }
         self.draft = Some(draft);
         Ok(self)

@@ -960,6 +960,54 @@ fn refining_a_draft() {
             .arg(dir.join("refused")),
     );
     assert!(err.contains("K is 3"), "{err}");
+
+    // A draft whose deformations were edited into ones no path can start from (all zero: the
+    // border moved; NaN; a step turned inside out) is refused, not silently dropped (issue
+    // 43 #13).
+    let bytes = std::fs::read(draft.join("deformations.f32")).unwrap();
+    let values: Vec<f32> = bytes
+        .chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect();
+    let plane = values.len() / 6; // K = 3 steps of 2 planes of 32²
+    let mut folded = values.clone();
+    for (i, v) in folded[..2 * plane].iter_mut().enumerate() {
+        // Step 1 mirrored inside its border: φ(x) = 31 − x off the border rows/columns.
+        let (r, c) = ((i % plane) / 32, (i % plane) % 32);
+        if (1..31).contains(&r) && (1..31).contains(&c) {
+            *v = 31.0 - *v;
+        }
+    }
+    let edits: [(&str, Vec<f32>); 3] = [
+        ("zero", vec![0.0; values.len()]),
+        ("nan", vec![f32::NAN; values.len()]),
+        ("folded", folded),
+    ];
+    for (name, edited) in edits {
+        let bad = dir.join(format!("draft_{name}"));
+        std::fs::create_dir(&bad).unwrap();
+        for entry in std::fs::read_dir(&draft).unwrap() {
+            let entry = entry.unwrap();
+            std::fs::copy(entry.path(), bad.join(entry.file_name())).unwrap();
+        }
+        let raw: Vec<u8> = edited.iter().flat_map(|v| v.to_le_bytes()).collect();
+        std::fs::write(bad.join("deformations.f32"), raw).unwrap();
+        let out = dir.join(format!("from_{name}"));
+        let err = fails(
+            deepmorph()
+                .args(["demo", "--size", "64", "-q", "-K", "3", "--levels", "3"])
+                .args(["--sweeps", "1", "--backend", "flex", "--init"])
+                .arg(&bad)
+                .arg("-o")
+                .arg(&out),
+        );
+        assert!(
+            err.contains("not admissible") || err.contains("is NaN"),
+            "{name}: {err}"
+        );
+        assert_eq!(err.trim().lines().count(), 1, "{name}: one line: {err}");
+        assert!(!out.exists(), "{name}: nothing written");
+    }
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
