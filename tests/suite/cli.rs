@@ -1043,6 +1043,17 @@ fn an_interrupted_morph_resumes_where_it_stopped() {
         .assert()
         .code(130);
     assert!(part.join("checkpoint.json").is_file() && part.join("checkpoint.f32").is_file());
+    // Settings that change the plan are refused, the checkpoint kept (issue 43 #3).
+    for flags in [&["-K", "5"][..], &["--sweeps", "10"], &["--size", "48x48"]] {
+        let err = fails(
+            deepmorph()
+                .args(["morph", "--resume"])
+                .arg(&part)
+                .args(flags),
+        );
+        assert!(err.contains("--resume continues"), "{flags:?}: {err}");
+        assert!(part.join("checkpoint.json").is_file(), "{flags:?}");
+    }
     let resumed_run = deepmorph()
         .args(["morph", "-v", "--resume"])
         .arg(&part)

@@ -178,6 +178,42 @@ impl RunArgs {
         })
     }
 
+    /// Refuses settings that would change what a `--resume`d run computes (issue 43 #3: `-K`
+    /// or `--sweeps` with `--resume` dropped the checkpoint and mixed two plans in
+    /// `energy.csv`). How the outputs are written (videos, frames, backend) may change.
+    fn check_resume(&self, config: &MorphConfig) -> Result<()> {
+        let Some(dir) = &self.resume else {
+            return Ok(());
+        };
+        let (recorded, _) = self.base(config.clone())?;
+        let differs = [
+            (
+                "the solver's settings (-K, --levels, --sweeps, the energy's parameters, --tol, \
+              --schedule, --landmark-weight)",
+                config.solver != recorded.solver,
+            ),
+            (
+                "the model (--model, --vgg19, --eta, --feature-rms, --pre-sweeps)",
+                config.deep != recorded.deep,
+            ),
+            (
+                "the working size (--size, --max-side, --quality)",
+                config.size != recorded.size,
+            ),
+            ("the landmarks (--points)", config.points != recorded.points),
+            ("the alignment (--align)", config.align != recorded.align),
+            ("the draft (--init)", config.init != recorded.init),
+        ];
+        if let Some((what, _)) = differs.iter().find(|(_, changed)| *changed) {
+            bail!(
+                "--resume continues the run recorded in {} with its own settings, but {what} \
+                 differ: give no such option, or start a new morph",
+                dir.display()
+            );
+        }
+        Ok(())
+    }
+
     /// The settings of this morph and the inputs of `--config`, if any: `base` (the
     /// library's defaults of the command) or the `--config` file's, overridden by every flag
     /// given.
@@ -316,6 +352,7 @@ pub(crate) fn morph_request(
     if run.resume.is_some() && !images.is_empty() {
         bail!("--resume continues the recorded morph: give no images");
     }
+    run.check_resume(&config)?;
     if run.points.len() > 1 && run.points.len() + 1 != images.len() {
         bail!(
             "{} --points files for {} images: give one per consecutive pair of images ({} \
@@ -350,6 +387,7 @@ pub(crate) fn demo_request(size: Option<usize>, run: RunArgs) -> Result<Request>
             width: side,
         };
     }
+    run.check_resume(&config)?;
     Ok(Request::Single(config, Inputs::Demo, run))
 }
 
