@@ -23,7 +23,7 @@ use crate::features::deep::deep_features;
 use crate::features::vgg::Vgg19;
 use crate::features::vgg::architecture::tap_channels;
 use crate::io::animation::VideoFormat;
-use crate::io::checkpoint::{load_checkpoint, save_checkpoint};
+use crate::io::checkpoint::{inputs_digest, load_checkpoint, save_checkpoint};
 use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
 use crate::io::output_folder::OutputFolder;
@@ -291,6 +291,11 @@ impl MorphJob {
         &self.notes
     }
 
+    /// [`inputs_digest`] of the inputs at the working size (what a checkpoint records).
+    pub fn inputs_digest(&self) -> String {
+        inputs_digest([self.images.0.data(), self.images.1.data()])
+    }
+
     /// The estimated peak memory in bytes.
     pub fn estimated_peak_bytes(&self) -> u64 {
         self.estimate
@@ -370,7 +375,7 @@ impl MorphJob {
             let grid = |level: usize| {
                 Grid::new(sizes[level].0, sizes[level].1, &device, precision.dtype())
             };
-            if let Some(resume) = load_checkpoint(dir, &sizes, grid)? {
+            if let Some(resume) = load_checkpoint(dir, &self.inputs_digest(), &sizes, grid)? {
                 driver = driver.with_resume(resume);
                 energy = EnergyLog::read(&dir.join("energy.csv"))?;
             }
@@ -552,7 +557,7 @@ impl MorphResult {
         let sheet = contact_sheet(&self.frames, self.morph.anisotropy.clone(), displacement)?;
         write_png(&dir.join("sheet.png"), &sheet)?;
         save_deformations(dir, deformations)?;
-        save_checkpoint(dir, &self.morph)?;
+        save_checkpoint(dir, &self.morph, &job.inputs_digest())?;
         let csv = self.energy.to_csv();
         write_atomically(&dir.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
         let record = self.record(job);

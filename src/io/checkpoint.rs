@@ -39,14 +39,38 @@ struct Header {
     phi_streak: Vec<u32>,
     history: Vec<f64>,
     levels: Vec<LevelSummary>,
+    /// [`inputs_digest`] of the inputs at the working size the run started from; absent in
+    /// checkpoints written before it was recorded (not checked then).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    inputs: Option<String>,
 }
 
-/// Writes the checkpoint of `morph` into `dir` if it was interrupted (nothing otherwise).
+/// A digest of the inputs as the solver sees them (the working-size images' float32
+/// values, FNV-1a 64, hex): `--resume` compares it, so that a checkpoint is never continued
+/// with other images (issue 43 #2: an input overwritten between the interruption and the
+/// resume gave a hybrid path).
+pub fn inputs_digest<'a>(images: impl IntoIterator<Item = &'a [f32]>) -> String {
+    let mut hash: u64 = 0xcbf2_9ce4_8422_2325;
+    for image in images {
+        for b in (image.len() as u64).to_le_bytes() {
+            hash = (hash ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+        for v in image {
+            for b in v.to_bits().to_le_bytes() {
+                hash = (hash ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+            }
+        }
+    }
+    format!("{hash:016x}")
+}
+
+/// Writes the checkpoint of `morph` into `dir` if it was interrupted (nothing otherwise),
+/// with the [`inputs_digest`] `inputs` of what it morphed.
 ///
 /// # Errors
 ///
 /// A file cannot be written.
-pub fn save_checkpoint(dir: &Path, morph: &Morph) -> Result<()> {
+pub fn save_checkpoint(dir: &Path, morph: &Morph, inputs: &str) -> Result<()> {
     let Termination::Interrupted { level, sweep } = morph.termination else {
         return Ok(());
     };
@@ -69,6 +93,7 @@ pub fn save_checkpoint(dir: &Path, morph: &Morph) -> Result<()> {
             .filter(|l| l.level < level)
             .cloned()
             .collect(),
+        inputs: Some(inputs.into()),
     };
     let mut bytes = Vec::new();
     for part in [&state.f, &state.f_prev, &state.phi, &state.phi_prev] {
@@ -82,15 +107,17 @@ pub fn save_checkpoint(dir: &Path, morph: &Morph) -> Result<()> {
     write_atomically(&dir.join(CHECKPOINT_HEADER), |w| w.write_all(&json))
 }
 
-/// Reads the checkpoint in `dir` for a morph whose levels are `grids` (`(H, W)`, coarse to
-/// fine), its state on the grid `grid(level)` makes; `None` if the folder has no
-/// checkpoint (the morph was not interrupted).
+/// Reads the checkpoint in `dir` for a morph of the inputs with [`inputs_digest`] `inputs`
+/// whose levels are `grids` (`(H, W)`, coarse to fine), its state on the grid `grid(level)`
+/// makes; `None` if the folder has no checkpoint (the morph was not interrupted).
 ///
 /// # Errors
 ///
-/// A malformed or truncated checkpoint, or one whose level does not fit `grids`.
+/// A malformed or truncated checkpoint, one whose level does not fit `grids`, or one made
+/// from other inputs.
 pub fn load_checkpoint(
     dir: &Path,
+    inputs: &str,
     grids: &[(usize, usize)],
     grid: impl Fn(usize) -> Result<Grid>,
 ) -> Result<Option<Resume>> {
@@ -104,6 +131,14 @@ pub fn load_checkpoint(
     };
     let header: Header = serde_json::from_slice(&read_bytes(&path, 16 << 20, "checkpoint")?)
         .map_err(|e| bad(format!("not a deepmorph checkpoint: {e}")))?;
+    if let Some(recorded) = &header.inputs
+        && recorded != inputs
+    {
+        return Err(bad(format!(
+            "made from other images than the inputs now (digest {recorded}, now {inputs}): an \
+             input changed since the run was interrupted; start a new morph"
+        )));
+    }
     let (k, c, h, w) = (header.steps, header.channels, header.height, header.width);
     if grids.get(header.level) != Some(&(h, w)) || k == 0 {
         return Err(bad(format!(

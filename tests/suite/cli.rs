@@ -1481,3 +1481,40 @@ fn a_chain_takes_the_points_of_each_segment() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `--resume` after an input changed is refused (the checkpoint records a digest of the
+/// inputs at the working size), the checkpoint kept; with the input restored it resumes
+/// (issue 43 #2: it continued the old path with the new image).
+#[test]
+fn a_checkpoint_is_not_resumed_with_other_inputs() {
+    let dir = scratch("resume_inputs");
+    let (a, b) = (dir.join("a.png"), dir.join("b.png"));
+    write_image(&a, 32, 32, 0.4, 0.4);
+    write_image(&b, 32, 32, 0.6, 0.6);
+    let part = dir.join("part");
+    deepmorph()
+        .env("DEEPMORPH_INTERRUPT_AT", "1:2")
+        .arg("morph")
+        .args([&a, &b])
+        .args([
+            "-q", "-K", "3", "--levels", "2", "--sweeps", "4", "--tol", "0",
+        ])
+        .args(["--backend", "flex", "--video", "gif", "-o"])
+        .arg(&part)
+        .assert()
+        .code(130);
+    let original = std::fs::read(&a).unwrap();
+    write_image(&a, 32, 32, 0.45, 0.4);
+    let err = fails(deepmorph().args(["morph", "-q", "--resume"]).arg(&part));
+    assert!(err.contains("an input changed"), "{err}");
+    assert_eq!(err.trim().lines().count(), 1, "one line: {err}");
+    assert!(part.join("checkpoint.json").is_file());
+    std::fs::write(&a, original).unwrap();
+    deepmorph()
+        .args(["morph", "-q", "--resume"])
+        .arg(&part)
+        .assert()
+        .success();
+    assert!(!part.join("checkpoint.json").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
