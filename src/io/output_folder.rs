@@ -236,16 +236,21 @@ fn owned_subfolder(dir: &Path, name: &str, owned: &impl Fn(&str) -> bool) -> boo
     })
 }
 
-/// Removes the staging folders for `name` in `parent` left by processes that no longer run,
-/// and puts back a previous output that a killed run had moved aside.
+/// Removes the staging folders in `parent` left by processes that no longer run, whatever
+/// target they were for (issue 43 #16: only the same target's were cleaned), and puts back
+/// a previous output that a killed run had moved aside (`name`'s first: its run is about to
+/// look at it).
 fn remove_stale(parent: &Path, name: &str) {
-    let prefix = format!(".{name}{STAGING_TAG}");
     let Ok(entries) = std::fs::read_dir(parent) else {
         return;
     };
+    let mut stale: Vec<(String, bool, PathBuf)> = Vec::new();
     for entry in entries.flatten() {
         let file_name = entry.file_name().to_string_lossy().into_owned();
-        let Some(rest) = file_name.strip_prefix(&prefix) else {
+        let Some((target, rest)) = file_name
+            .strip_prefix('.')
+            .and_then(|n| n.rsplit_once(STAGING_TAG))
+        else {
             continue;
         };
         let (aside, pid) = match rest.strip_prefix(ASIDE_TAG) {
@@ -255,14 +260,18 @@ fn remove_stale(parent: &Path, name: &str) {
         let Ok(pid) = pid.parse::<u32>() else {
             continue;
         };
-        if pid == std::process::id() || process_runs(pid) {
+        if target.is_empty() || pid == std::process::id() || process_runs(pid) {
             continue;
         }
-        let target = parent.join(name);
+        stale.push((target.to_string(), aside, entry.path()));
+    }
+    stale.sort_by_key(|(target, _, _)| target != name);
+    for (target, aside, path) in stale {
+        let target = parent.join(target);
         if aside && !target.exists() {
-            let _ = std::fs::rename(entry.path(), &target);
+            let _ = std::fs::rename(&path, &target);
         } else {
-            let _ = std::fs::remove_dir_all(entry.path());
+            let _ = std::fs::remove_dir_all(&path);
         }
     }
 }

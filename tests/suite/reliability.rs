@@ -265,9 +265,13 @@ fn a_killed_run_leaves_the_previous_morph_and_is_cleaned_up_next_time() {
     holds_one_morph(&out, 6);
     let staging = format!(".out.deepmorph-{}", child.id());
     nothing_else_in(&dir, &[&staging, "out"]);
+    // A run into another folder of the same parent cleans it too (issue 43 #16).
+    quick_demo(&dir.join("other"), 2, &[]).assert().success();
+    nothing_else_in(&dir, &["other", "out"]);
+    holds_one_morph(&out, 6);
     quick_demo(&out, 2, &["--force"]).assert().success();
     holds_one_morph(&out, 2);
-    nothing_else_in(&dir, &["out"]);
+    nothing_else_in(&dir, &["other", "out"]);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
