@@ -22,7 +22,6 @@ use crate::eval::perceptual::feature_path;
 use crate::features::deep::deep_features;
 use crate::features::vgg::Vgg19;
 use crate::features::vgg::architecture::tap_channels;
-use crate::io::animation::VideoFormat;
 use crate::io::checkpoint::{inputs_digest, load_checkpoint, save_checkpoint};
 use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
@@ -408,29 +407,32 @@ impl MorphJob {
     }
 }
 
-/// Refuses a working size the requested animations cannot encode, before any work: the
-/// H.264 encoder takes no frame side below [`MP4_MIN_SIDE`] pixels (it failed after the
-/// whole solve, issue 43 #7).
+/// Refuses a working size one of the requested animations cannot encode
+/// ([`crate::io::animation::VideoFormat::min_side`]), before any work.
 ///
 /// # Errors
 ///
 /// [`Error::InvalidParameter`] naming the size and what would work.
 fn check_video_size(config: &MorphConfig, (h, w): (usize, usize)) -> Result<()> {
-    if config.video.contains(&VideoFormat::Mp4) && h.min(w) < MP4_MIN_SIDE {
-        return Err(Error::invalid(
-            "size",
-            format!("{w}x{h} (WxH)"),
-            format!(
-                "at least {MP4_MIN_SIDE} pixels on each side for morph.mp4 (the H.264 \
-                 encoder's smallest frame): a larger --size, or --video gif or apng"
-            ),
-        ));
-    }
-    Ok(())
+    let Some(format) = config
+        .video
+        .iter()
+        .copied()
+        .find(|f| h.min(w) < f.min_side())
+    else {
+        return Ok(());
+    };
+    Err(Error::invalid(
+        "size",
+        format!("{w}x{h} (WxH)"),
+        format!(
+            "at least {} pixels on each side for {} (its encoder's smallest frame): a larger \
+             --size, or --video without {format}",
+            format.min_side(),
+            format.file_name()
+        ),
+    ))
 }
-
-/// The smallest frame side the H.264 encoder takes.
-pub const MP4_MIN_SIDE: usize = 16;
 
 /// SPEC §11's global map for `--align kind`: from the landmarks by least squares when there
 /// are any, otherwise from the images on the coarsest level (RGB resampled to its size,
@@ -557,7 +559,7 @@ impl MorphResult {
         let sheet = contact_sheet(&self.frames, self.morph.anisotropy.clone(), displacement)?;
         write_png(&dir.join("sheet.png"), &sheet)?;
         save_deformations(dir, deformations)?;
-        save_checkpoint(dir, &self.morph, &job.inputs_digest())?;
+        save_checkpoint(dir, &self.morph, || job.inputs_digest())?;
         let csv = self.energy.to_csv();
         write_atomically(&dir.join("energy.csv"), |w| w.write_all(csv.as_bytes()))?;
         let record = self.record(job);

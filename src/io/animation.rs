@@ -28,6 +28,15 @@ impl VideoFormat {
     /// Every format, in the order they are written.
     pub const ALL: [VideoFormat; 3] = [VideoFormat::Mp4, VideoFormat::Apng, VideoFormat::Gif];
 
+    /// The smallest frame side this format encodes: the H.264 encoder takes no frame side
+    /// below 16 pixels (a smaller one failed after the whole solve, issue 43 #7).
+    pub fn min_side(self) -> usize {
+        match self {
+            VideoFormat::Mp4 => 16,
+            VideoFormat::Apng | VideoFormat::Gif => 1,
+        }
+    }
+
     /// The file this format is written to.
     pub fn file_name(self) -> &'static str {
         match self {

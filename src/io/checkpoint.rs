@@ -65,12 +65,12 @@ pub fn inputs_digest<'a>(images: impl IntoIterator<Item = &'a [f32]>) -> String 
 }
 
 /// Writes the checkpoint of `morph` into `dir` if it was interrupted (nothing otherwise),
-/// with the [`inputs_digest`] `inputs` of what it morphed.
+/// with the [`inputs_digest`] `inputs()` of what it morphed (computed only then).
 ///
 /// # Errors
 ///
 /// A file cannot be written.
-pub fn save_checkpoint(dir: &Path, morph: &Morph, inputs: &str) -> Result<()> {
+pub fn save_checkpoint(dir: &Path, morph: &Morph, inputs: impl FnOnce() -> String) -> Result<()> {
     let Termination::Interrupted { level, sweep } = morph.termination else {
         return Ok(());
     };
@@ -93,7 +93,7 @@ pub fn save_checkpoint(dir: &Path, morph: &Morph, inputs: &str) -> Result<()> {
             .filter(|l| l.level < level)
             .cloned()
             .collect(),
-        inputs: Some(inputs.into()),
+        inputs: Some(inputs()),
     };
     let mut bytes = Vec::new();
     for part in [&state.f, &state.f_prev, &state.phi, &state.phi_prev] {

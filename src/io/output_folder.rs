@@ -133,8 +133,7 @@ impl OutputFolder {
         // last one's result silently replaced the first's). The lock is held for
         // milliseconds; the live staging folder is what keeps a second run out.
         let lock = ParentLock::take(&parent);
-        remove_stale(&parent, &name);
-        if let Some(pid) = live_writer(&parent, &name) {
+        if let Some(pid) = remove_stale(&parent, &name) {
             return Err(refuse(format!(
                 "is being written by another deepmorph run (process {pid}): wait for it to \
                  finish or choose another -o"
@@ -239,12 +238,13 @@ fn owned_subfolder(dir: &Path, name: &str, owned: &impl Fn(&str) -> bool) -> boo
 /// Removes the staging folders in `parent` left by processes that no longer run, whatever
 /// target they were for (issue 43 #16: only the same target's were cleaned), and puts back
 /// a previous output that a killed run had moved aside (`name`'s first: its run is about to
-/// look at it).
-fn remove_stale(parent: &Path, name: &str) {
-    let Ok(entries) = std::fs::read_dir(parent) else {
-        return;
-    };
+/// look at it). Returns the process id of another live run staging `name`, if any: only
+/// where liveness can be known (Linux); elsewhere a killed run's folder would lock the
+/// target for good.
+fn remove_stale(parent: &Path, name: &str) -> Option<u32> {
+    let entries = std::fs::read_dir(parent).ok()?;
     let mut stale: Vec<(String, bool, PathBuf)> = Vec::new();
+    let mut live = None;
     for entry in entries.flatten() {
         let file_name = entry.file_name().to_string_lossy().into_owned();
         let Some((target, rest)) = file_name
@@ -260,7 +260,13 @@ fn remove_stale(parent: &Path, name: &str) {
         let Ok(pid) = pid.parse::<u32>() else {
             continue;
         };
-        if target.is_empty() || pid == std::process::id() || process_runs(pid) {
+        if target.is_empty() || pid == std::process::id() {
+            continue;
+        }
+        if process_runs(pid) {
+            if target == name && !aside && cfg!(target_os = "linux") {
+                live = Some(pid);
+            }
             continue;
         }
         stale.push((target.to_string(), aside, entry.path()));
@@ -274,21 +280,7 @@ fn remove_stale(parent: &Path, name: &str) {
             let _ = std::fs::remove_dir_all(&path);
         }
     }
-}
-
-/// Another live process's staging folder for `name` in `parent` (run after
-/// [`remove_stale`]): its process id. Only where liveness can be known (Linux); elsewhere a
-/// killed run's folder would lock the target for good.
-fn live_writer(parent: &Path, name: &str) -> Option<u32> {
-    if !cfg!(target_os = "linux") {
-        return None;
-    }
-    let prefix = format!(".{name}{STAGING_TAG}");
-    std::fs::read_dir(parent).ok()?.flatten().find_map(|entry| {
-        let file_name = entry.file_name().to_string_lossy().into_owned();
-        let pid = file_name.strip_prefix(&prefix)?.parse::<u32>().ok()?;
-        (pid != std::process::id() && process_runs(pid)).then_some(pid)
-    })
+    live
 }
 
 /// An exclusive `flock` on a folder, released on drop; nothing where the file system does

@@ -10,6 +10,7 @@
 
 use crate::error::{Error, Result};
 use crate::model::energy::landmarks::Landmarks;
+use crate::model::stencil::{Matrix, gaussian};
 
 /// A 3 × 3 matrix, row-major.
 pub type Matrix3 = [[f64; 3]; 3];
@@ -482,10 +483,10 @@ impl GreyImage {
     ///
     /// # Errors
     ///
-    /// If `rgb` does not hold `3 · rows · cols` values.
+    /// If `rgb` does not hold `3 · rows · cols` values, or a side is below 2.
     pub fn from_rgb_planes(rgb: &[f64], rows: usize, cols: usize, sigma: f64) -> Result<Self> {
         let n = rows * cols;
-        if rgb.len() != 3 * n || n == 0 {
+        if rgb.len() != 3 * n || rows < 2 || cols < 2 {
             return Err(Error::Shape {
                 op: "grey image",
                 detail: format!("{} values for 3 x {rows} x {cols}", rgb.len()),
@@ -494,45 +495,16 @@ impl GreyImage {
         let luma: Vec<f64> = (0..n)
             .map(|i| 0.299 * rgb[i] + 0.587 * rgb[n + i] + 0.114 * rgb[2 * n + i])
             .collect();
-        let radius = (3.0 * sigma).ceil() as isize;
-        let kernel: Vec<f64> = (-radius..=radius)
-            .map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp())
-            .collect();
-        let total: f64 = kernel.iter().sum();
-        let mirror = |i: isize, len: usize| -> usize {
-            let len = len as isize;
-            let mut i = i;
-            while i < 0 || i >= len {
-                i = if i < 0 { -i } else { 2 * (len - 1) - i };
-                if len == 1 {
-                    return 0;
-                }
-            }
-            i as usize
+        // SPEC §3's Gaussian with its mirror boundary, along columns then rows.
+        let image = Matrix {
+            rows,
+            cols,
+            data: luma,
         };
-        let blur = |src: &[f64], along_rows: bool| -> Vec<f64> {
-            let mut out = vec![0.0; n];
-            for r in 0..rows {
-                for c in 0..cols {
-                    out[r * cols + c] = kernel
-                        .iter()
-                        .enumerate()
-                        .map(|(t, w)| {
-                            let d = t as isize - radius;
-                            let (rr, cc) = if along_rows {
-                                (mirror(r as isize + d, rows), c)
-                            } else {
-                                (r, mirror(c as isize + d, cols))
-                            };
-                            w * src[rr * cols + cc]
-                        })
-                        .sum::<f64>()
-                        / total;
-                }
-            }
-            out
-        };
-        let values = blur(&blur(&luma, true), false);
+        let values = gaussian(rows, sigma)
+            .matmul(&image)
+            .matmul(&gaussian(cols, sigma).transpose())
+            .data;
         Ok(Self { values, rows, cols })
     }
 
@@ -542,14 +514,13 @@ impl GreyImage {
         if !(0.0..=hr).contains(&r) || !(0.0..=hc).contains(&c) {
             return None;
         }
+        // Both sides are at least 2 (`from_rgb_planes`): the cell's far corner is inside.
         let (r0, c0) = (
-            (r.floor() as usize).min(self.rows.saturating_sub(2)),
-            (c.floor() as usize).min(self.cols.saturating_sub(2)),
+            (r.floor() as usize).min(self.rows - 2),
+            (c.floor() as usize).min(self.cols - 2),
         );
         let (fr, fc) = (r - r0 as f64, c - c0 as f64);
-        let v = |i: usize, j: usize| {
-            self.values[i.min(self.rows - 1) * self.cols + j.min(self.cols - 1)]
-        };
+        let v = |i: usize, j: usize| self.values[i * self.cols + j];
         Some(
             (1.0 - fr) * ((1.0 - fc) * v(r0, c0) + fc * v(r0, c0 + 1))
                 + fr * ((1.0 - fc) * v(r0 + 1, c0) + fc * v(r0 + 1, c0 + 1)),

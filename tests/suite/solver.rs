@@ -318,16 +318,47 @@ fn landmark_residual(morph: &Morph, p: [f64; 2], q: [f64; 2]) -> f64 {
     LandmarkResiduals::of(&phi, (h, w), &[(p, q)]).max
 }
 
+/// A blob of `width` pixels at `p` in A and at `q` in B (`[row, col]`) on an `n × n` grid
+/// of `backend` (autodiff on).
+fn blob_pair(
+    backend: Backend,
+    n: usize,
+    (p, q): ([f64; 2], [f64; 2]),
+    width: f64,
+) -> (Device, Grid, Tensor<4>, Tensor<4>) {
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
+    let (a, b) = (
+        blob(&grid, p[0], p[1], width),
+        blob(&grid, q[0], q[1], width),
+    );
+    (device, grid, a, b)
+}
+
+/// `driver`'s morph of `a` into `b`, every sweep watched (what it saw is for the caller to
+/// assert).
+fn watched(device: &Device, driver: Multilevel, a: &Tensor<4>, b: &Tensor<4>) -> (Morph, Watch) {
+    let mut watch = Watch::default();
+    let morph = driver
+        .run(
+            device,
+            a.clone(),
+            b.clone(),
+            &mut watch,
+            &AtomicBool::new(false),
+        )
+        .unwrap();
+    (morph, watch)
+}
+
 /// SPEC §11 in the solver: a blob moved by a third of the domain is cross-faded by plain
 /// metamorphosis (its centre stays where it was), while one landmark pair on its centre is
 /// met to within a working pixel, in both schedules; every φ stays admissible (`run`), and
 /// the logged `E` holds `E_lm` as the term evaluates it.
 fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
-    let device = device(backend, Precision::F32, true);
     let n = 32;
-    let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
     let (p, q) = ([10.0, 9.0], [21.0, 22.0]);
-    let (a, b) = (blob(&grid, p[0], p[1], 2.5), blob(&grid, q[0], q[1], 2.5));
+    let (device, grid, a, b) = blob_pair(backend, n, (p, q), 2.5);
     let config = small(4, 3, 60);
     let (plain, plain_watch) = run(&device, config, a.clone(), b.clone());
     let missed = landmark_residual(&plain, p, q);
@@ -340,39 +371,20 @@ fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
     // bit for bit. On the CPU backends only: wgpu's float32 reductions are not reproducible
     // from run to run, and one more morph there costs a minute on lavapipe.
     if backend != Backend::Wgpu {
-        let mut unweighted = Watch::default();
-        Multilevel::new(MultilevelConfig {
+        let unweighted = MultilevelConfig {
             landmark_weight: 0.0,
             ..config
-        })
-        .unwrap()
-        .with_landmarks(landmarks.clone())
-        .run(
-            &device,
-            a.clone(),
-            b.clone(),
-            &mut unweighted,
-            &AtomicBool::new(false),
-        )
-        .unwrap();
+        };
+        let driver = Multilevel::new(unweighted).unwrap();
+        let (_, unweighted) = watched(&device, driver.with_landmarks(landmarks.clone()), &a, &b);
         assert!(unweighted.initialisations.is_empty());
         assert_eq!(unweighted.energies, plain_watch.energies);
     }
     for schedule in [Schedule::Sequential, Schedule::Batched] {
         let mut config = config;
         config.ipalm.schedule = schedule;
-        let mut watch = Watch::default();
-        let morph = Multilevel::new(config)
-            .unwrap()
-            .with_landmarks(landmarks.clone())
-            .run(
-                &device,
-                a.clone(),
-                b.clone(),
-                &mut watch,
-                &AtomicBool::new(false),
-            )
-            .unwrap();
+        let driver = Multilevel::new(config).unwrap();
+        let (morph, watch) = watched(&device, driver.with_landmarks(landmarks.clone()), &a, &b);
         assert!(watch.inadmissible.is_empty(), "{:?}", watch.inadmissible);
         // The coarsest level starts from the landmarks (SPEC §11), each step whole.
         assert_eq!(watch.initialisations[0].halvings, vec![0; 4]);
@@ -410,20 +422,14 @@ fn landmarks_steer_the_path_in_both_schedules(backend: Backend) {
 /// small an object the cross-fade has the lower energy, and the optimisation drifts back
 /// towards it (landmarks hold it, `landmarks_steer_the_path_in_both_schedules`).
 fn an_aligned_start_carries_the_blob(backend: Backend) {
-    let device = device(backend, Precision::F32, true);
     let n = 48;
-    let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
     let (p, q) = ([16.0, 15.0], [30.0, 32.0]);
-    let (a, b) = (blob(&grid, p[0], p[1], 3.0), blob(&grid, q[0], q[1], 3.0));
+    let (device, _, a, b) = blob_pair(backend, n, (p, q), 3.0);
     let config = small(4, 2, 40);
     let (plain, plain_watch) = run(&device, config, a.clone(), b.clone());
     let shift = GlobalMap::similarity([0.0, 0.0], 0.0, 1.0, [q[1] - p[1], q[0] - p[0]]);
-    let mut watch = Watch::default();
-    let morph = Multilevel::new(config)
-        .unwrap()
-        .with_alignment(shift)
-        .run(&device, a, b, &mut watch, &AtomicBool::new(false))
-        .unwrap();
+    let driver = Multilevel::new(config).unwrap().with_alignment(shift);
+    let (morph, watch) = watched(&device, driver, &a, &b);
     assert!(watch.inadmissible.is_empty(), "{:?}", watch.inadmissible);
     assert_eq!(watch.initialisations[0].halvings, vec![0; 4]);
     let (start_grid, start_phi) = watch.start.as_ref().unwrap();
