@@ -373,6 +373,15 @@ pub enum Inputs {
     },
     /// The built-in synthetic pair ([`crate::app::demo`]).
     Demo,
+    /// Two images handed over in memory (the Python module's arrays,
+    /// [`MorphJob::from_images`](crate::app::job::MorphJob::from_images)): nothing to read
+    /// again, so a run of these cannot be resumed or rerun from its `config.json` alone.
+    Arrays {
+        /// A's size, `[H, W]`.
+        a: [usize; 2],
+        /// B's size, `[H, W]`.
+        b: [usize; 2],
+    },
 }
 
 impl Inputs {
@@ -380,7 +389,7 @@ impl Inputs {
     pub fn files(&self) -> Vec<&Path> {
         match self {
             Inputs::Files { a, b } => vec![a.as_path(), b.as_path()],
-            Inputs::Demo => Vec::new(),
+            Inputs::Demo | Inputs::Arrays { .. } => Vec::new(),
         }
     }
 }

@@ -70,6 +70,7 @@ pub fn evaluate(
         let (size_a, size_b) = match &record.inputs {
             Inputs::Files { a, b } => (input_size(a)?, input_size(b)?),
             Inputs::Demo => (working, working),
+            Inputs::Arrays { a, b } => ((a[0], a[1]), (b[0], b[1])),
         };
         let landmarks = landmarks_on_working_grid(&pairs, size_a, size_b, working)?;
         record.landmarks = Some(pairs_of(&landmarks));
@@ -170,6 +171,7 @@ fn check_truth_size(
             .ok()
             .map(|(w, h)| (h as usize, w as usize, a.display().to_string())),
         Inputs::Demo => Some((wh, ww, "demo input".into())),
+        Inputs::Arrays { a: [h, w], .. } => Some((*h, *w, "first input array".into())),
     };
     let refuse = |what: String| {
         Err(Error::Format {

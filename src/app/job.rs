@@ -35,7 +35,7 @@ use crate::model::alignment::{
 };
 use crate::model::energy::landmarks::Landmarks;
 use crate::model::feature_model::FeatureModel;
-use crate::model::grid::Grid;
+use crate::model::grid::{Grid, host_values};
 use crate::model::inbetween::Clip;
 use crate::solver::ipalm::Schedule;
 use crate::solver::multilevel::{Draft, Morph, Multilevel};
@@ -84,91 +84,96 @@ impl MorphJob {
     /// A bad setting, an unreadable input, a working size that does not fit the pyramid, or
     /// not enough memory.
     pub fn prepare(config: MorphConfig, inputs: Inputs) -> Result<Self> {
-        config.validate()?;
-        // config.json records these paths as text: one that is not UTF-8 would fail only
-        // when the morph is written, after all the work.
-        let recorded = inputs
-            .files()
-            .into_iter()
-            .chain(config.init.as_deref())
-            .chain(config.deep.as_ref().map(|deep| deep.vgg19.as_path()));
-        for path in recorded {
-            if path.to_str().is_none() {
-                return Err(Error::invalid(
-                    "path",
-                    path.display(),
-                    "a UTF-8 name (config.json records the paths of a run as text): rename \
-                     the file or folder",
-                ));
-            }
-        }
-        config.backend.device_for(Precision::F32)?;
-        let multiple = config.size_multiple();
-        let deep = config.deep.is_some();
-        let channels = if deep { 3 + tap_channels()[0] } else { 3 };
-        let check_memory = |height: usize, width: usize| {
-            let plan = memory::Plan {
-                height,
-                width,
-                steps: config.solver.steps,
-                channels,
-                deep,
-                batched: config.solver.ipalm.schedule == Schedule::Batched,
-            };
-            memory::check(
-                &plan,
-                config.max_memory_gib,
-                config.backend != crate::Backend::Wgpu,
-            )
-        };
-        let mut notes = Vec::new();
-        let (inputs, images, estimate, sizes) = match inputs {
+        check_settings(&config, &inputs)?;
+        match inputs {
             Inputs::Files { a, b } => {
                 let (image_a, image_b) = (RgbImage::load(&a)?, RgbImage::load(&b)?);
-                let sizes = (
-                    (image_a.height(), image_a.width()),
-                    (image_b.height(), image_b.width()),
-                );
-                let (h, w) = config
-                    .size
-                    .resolve(image_a.height(), image_a.width(), multiple)?;
-                let estimate = check_memory(h, w)?;
-                let mut resize = |img: RgbImage, name: &str| {
-                    if (img.height(), img.width()) == (h, w) {
-                        return img;
-                    }
-                    notes.push(format!(
-                        "{name}: {}x{} resized to the working size {w}x{h}",
-                        img.width(),
-                        img.height()
-                    ));
-                    img.resized(h, w)
-                };
-                let images = (resize(image_a, "A"), resize(image_b, "B"));
+                let sizes = (image_a.size(), image_b.size());
                 let absolute = |p: PathBuf| p.canonicalize().unwrap_or(p);
                 let inputs = Inputs::Files {
                     a: absolute(a),
                     b: absolute(b),
                 };
-                (inputs, images, estimate, sizes)
+                Self::prepare_images(config, inputs, (image_a, image_b), sizes)
             }
             Inputs::Demo => {
                 let side = match config.size {
                     crate::app::config::WorkingSize::Fit { max_side } => max_side,
                     crate::app::config::WorkingSize::Exact { height, width } => height.max(width),
                 };
-                let (h, w) = config.size.resolve(side, side, multiple)?;
-                let estimate = check_memory(h, w)?;
+                let (h, w) = config.size.resolve(side, side, config.size_multiple())?;
                 let (a, b) = demo_pair(h.max(w));
-                let sizes = ((a.height(), a.width()), (b.height(), b.width()));
-                (
-                    (Inputs::Demo),
-                    (a.resized(h, w), b.resized(h, w)),
-                    estimate,
-                    sizes,
-                )
+                // The demo's points are in the pair's own (square) pixels.
+                let sizes = (a.size(), b.size());
+                let images = (a.resized(h, w), b.resized(h, w));
+                Self::prepare_images(config, Inputs::Demo, images, sizes)
             }
+            Inputs::Arrays { .. } => Err(Error::invalid(
+                "inputs",
+                "arrays",
+                "image files: this run's inputs were handed over in memory (the Python \
+                 module) and cannot be read again; give the images A and B",
+            )),
+        }
+    }
+
+    /// As [`prepare`](Self::prepare), for two images already in memory (the Python module's
+    /// arrays); `config.json` records their sizes ([`Inputs::Arrays`]).
+    ///
+    /// # Errors
+    ///
+    /// As [`prepare`](Self::prepare), but for reading the inputs.
+    pub fn from_images(config: MorphConfig, a: RgbImage, b: RgbImage) -> Result<Self> {
+        check_settings(&config, &Inputs::Demo)?;
+        let sizes = (a.size(), b.size());
+        let inputs = Inputs::Arrays {
+            a: [sizes.0.0, sizes.0.1],
+            b: [sizes.1.0, sizes.1.1],
         };
+        Self::prepare_images(config, inputs, (a, b), sizes)
+    }
+
+    /// [`prepare`](Self::prepare) once the inputs are read: the working size, the memory
+    /// check, the landmarks and the alignment.
+    /// `sizes` are the inputs' own sizes, in which the landmarks are given.
+    fn prepare_images(
+        config: MorphConfig,
+        inputs: Inputs,
+        (image_a, image_b): (RgbImage, RgbImage),
+        sizes: ((usize, usize), (usize, usize)),
+    ) -> Result<Self> {
+        let multiple = config.size_multiple();
+        let deep = config.deep.is_some();
+        let channels = if deep { 3 + tap_channels()[0] } else { 3 };
+        let plan = |height: usize, width: usize| memory::Plan {
+            height,
+            width,
+            steps: config.solver.steps,
+            channels,
+            deep,
+            batched: config.solver.ipalm.schedule == Schedule::Batched,
+        };
+        let (h, w) = config
+            .size
+            .resolve(image_a.height(), image_a.width(), multiple)?;
+        let estimate = memory::check(
+            &plan(h, w),
+            config.max_memory_gib,
+            config.backend != crate::Backend::Wgpu,
+        )?;
+        let mut notes = Vec::new();
+        let mut resize = |img: RgbImage, name: &str| {
+            if (img.height(), img.width()) == (h, w) {
+                return img;
+            }
+            notes.push(format!(
+                "{name}: {}x{} resized to the working size {w}x{h}",
+                img.width(),
+                img.height()
+            ));
+            img.resized(h, w)
+        };
+        let images = (resize(image_a, "A"), resize(image_b, "B"));
         if let Some(dir) = &config.init {
             check_draft(dir, &config, images.0.height(), images.0.width())?;
         }
@@ -263,6 +268,7 @@ impl MorphJob {
         let inputs = match &self.inputs {
             Inputs::Files { a, b } => format!("{} -> {}, ", a.display(), b.display()),
             Inputs::Demo => "the demo pair, ".into(),
+            Inputs::Arrays { .. } => "two arrays, ".into(),
         };
         format!(
             "{inputs}{w}x{h} (WxH), about {:.1} GiB",
@@ -407,6 +413,30 @@ impl MorphJob {
     }
 }
 
+/// Checks the settings and the backend before any file is read, and refuses a path
+/// `config.json` could not record as text (one that is not UTF-8 would fail only when the
+/// morph is written, after all the work).
+fn check_settings(config: &MorphConfig, inputs: &Inputs) -> Result<()> {
+    config.validate()?;
+    let recorded = inputs
+        .files()
+        .into_iter()
+        .chain(config.init.as_deref())
+        .chain(config.deep.as_ref().map(|deep| deep.vgg19.as_path()));
+    for path in recorded {
+        if path.to_str().is_none() {
+            return Err(Error::invalid(
+                "path",
+                path.display(),
+                "a UTF-8 name (config.json records the paths of a run as text): rename the \
+                 file or folder",
+            ));
+        }
+    }
+    config.backend.device_for(Precision::F32)?;
+    Ok(())
+}
+
 /// Refuses a working size one of the requested animations cannot encode
 /// ([`crate::io::animation::VideoFormat::min_side`]), before any work.
 ///
@@ -525,6 +555,21 @@ impl MorphResult {
         let Some(count) = job.config.animation_frames else {
             return Ok(self.frames.iter().map(RgbImage::to_rgb8).collect());
         };
+        Ok(self
+            .inbetween(count)?
+            .iter()
+            .map(RgbImage::to_rgb8)
+            .collect())
+    }
+
+    /// `count` frames evenly spaced in time along the path, the computed ones among them
+    /// ([`Clip`]: frames between `u_{k−1}` and `u_k` follow `φ_k`).
+    ///
+    /// # Errors
+    ///
+    /// A `count` that does not hold the computed frames ([`crate::model::inbetween::check_count`]),
+    /// or a backend that fails to render a frame.
+    pub fn inbetween(&self, count: usize) -> Result<Vec<RgbImage>> {
         let grid = &self.morph.grid;
         let frames = self
             .frames
@@ -538,7 +583,7 @@ impl MorphResult {
             count,
         )?;
         (0..clip.len())
-            .map(|j| Ok(RgbImage::from_tensor(clip.frame(j))?.to_rgb8()))
+            .map(|j| RgbImage::from_tensor(clip.frame(j)))
             .collect()
     }
 
@@ -567,20 +612,58 @@ impl MorphResult {
         write_atomically(&dir.join(CONFIG), |w| w.write_all(&json))?;
         let device = job.config.backend.device_for(Precision::F32)?;
         let folder = MorphFolder::read(dir, &device)?;
+        let (metrics, composed) = self.measure(job, &folder, &device)?;
+        save_composed(dir, composed)?;
+        write_metrics(dir, &metrics)?;
+        Ok(metrics)
+    }
+
+    /// The quality numbers [`write`](Self::write) puts in `metrics.json`, computed in memory
+    /// from what it would write (frames rounded to 8 bits, the energy log as `energy.csv`
+    /// holds it), without writing anything: for a library caller who keeps the result.
+    ///
+    /// # Errors
+    ///
+    /// A NaN in the deformations, or a backend that cannot run.
+    pub fn metrics(&self, job: &MorphJob) -> Result<Metrics> {
+        let device = job.config.backend.device_for(Precision::F32)?;
+        let deformations = self.morph.state.deformations();
+        let shape = deformations.dims();
+        let grid = Grid::new(shape[2], shape[3], &device, Precision::F32.dtype())?;
+        let deformations = grid.tensor(host_values(deformations)?, shape);
+        let frames = self
+            .frames
+            .iter()
+            .map(|f| RgbImage::from_rgb8(&f.to_rgb8()))
+            .collect();
+        let energy =
+            EnergyLog::from_csv(&self.energy.to_csv()).map_err(|detail| Error::Format {
+                path: "energy.csv".into(),
+                detail,
+            })?;
+        let folder = MorphFolder::from_parts(grid, deformations, frames, energy)?;
+        Ok(self.measure(job, &folder, &device)?.0)
+    }
+
+    /// The metrics of `folder` (this morph, read back or in memory) and its composed map.
+    fn measure(
+        &self,
+        job: &MorphJob,
+        folder: &MorphFolder,
+        device: &burn::tensor::Device,
+    ) -> Result<(Metrics, Tensor<4>)> {
         let composed = folder.composed();
-        save_composed(dir, composed.clone())?;
         let mut metrics = folder.metrics(composed.clone(), None)?;
         let grid = (folder.grid.height(), folder.grid.width());
-        metrics.landmarks = landmark_residuals(&record, composed, grid)?;
+        metrics.landmarks = landmark_residuals(&self.record(job), composed.clone(), grid)?;
         // The deep model's network again (it is not kept through the solve, for memory);
-        // should its file have gone meanwhile, the morph is still written, without these.
+        // should its file have gone meanwhile, the morph is still measured, without these.
         if let Some(deep) = &job.config.deep {
-            metrics.feature_path = Vgg19::load(&deep.vgg19, &device)
+            metrics.feature_path = Vgg19::load(&deep.vgg19, device)
                 .and_then(|vgg| feature_path(&vgg, &folder.grid, &folder.frames))
                 .ok();
         }
-        write_metrics(dir, &metrics)?;
-        Ok(metrics)
+        Ok((metrics, composed))
     }
 
     /// What [`write`](Self::write) writes, for a person: "16 frames, morph.mp4, …,

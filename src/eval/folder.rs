@@ -84,9 +84,30 @@ impl MorphFolder {
             Ok(image)
         };
         let frames = (0..=k).map(frame).collect::<Result<Vec<_>>>()?;
-        let endpoints = (frames[0].to_tensor(&grid)?, frames[k].to_tensor(&grid)?);
-
         let energy = EnergyLog::read(&dir.join("energy.csv"))?;
+        Self::from_parts(grid, deformations, frames, energy)
+    }
+
+    /// A folder's contents from their parts: `deformations` `[K, 2, H, W]` on `grid`, the
+    /// `K + 1` frames at its size, the energy log.
+    ///
+    /// # Errors
+    ///
+    /// [`Error::Shape`] if the frames do not fit the deformations.
+    pub fn from_parts(
+        grid: Grid,
+        deformations: Tensor<4>,
+        frames: Vec<RgbImage>,
+        energy: EnergyLog,
+    ) -> Result<Self> {
+        let [k, _, h, w] = deformations.dims();
+        if frames.len() != k + 1 || frames.iter().any(|f| f.size() != (h, w)) {
+            return Err(Error::Shape {
+                op: "MorphFolder::from_parts",
+                detail: format!("{} frames for {k} deformations of {w}x{h}", frames.len()),
+            });
+        }
+        let endpoints = (frames[0].to_tensor(&grid)?, frames[k].to_tensor(&grid)?);
         Ok(Self {
             steps: k,
             deformations,

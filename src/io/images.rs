@@ -55,6 +55,11 @@ impl RgbImage {
         Ok(Self::from_dynamic(&decode_image(path)?))
     }
 
+    /// An 8-bit image as [`load`](Self::load) reads it from a PNG file.
+    pub fn from_rgb8(img: &image::RgbImage) -> Self {
+        Self::from_dynamic(&image::DynamicImage::ImageRgb8(img.clone()))
+    }
+
     fn from_dynamic(img: &image::DynamicImage) -> Self {
         let rgb = img.to_rgb32f();
         let (w, h) = (rgb.width() as usize, rgb.height() as usize);
@@ -70,6 +75,11 @@ impl RgbImage {
             width: w,
             data,
         }
+    }
+
+    /// `(rows, columns)`.
+    pub fn size(&self) -> (usize, usize) {
+        (self.height, self.width)
     }
 
     /// Rows.
