@@ -20,6 +20,7 @@ made here equals the program's on the same inputs and settings.
 from __future__ import annotations
 
 import sys
+import warnings
 from typing import Any, Callable, Optional, Union
 
 from . import _native
@@ -87,14 +88,16 @@ def morph(
     ``fps``, ``crf``, ``frames``, ``pingpong``, ``init``...; an unknown name is a
     ``ValueError`` listing them.
 
-    The solve releases the GIL. Ctrl-C stops it after the current sweep and raises
-    :class:`Interrupted` (a ``KeyboardInterrupt``) whose ``.morph`` holds the path reached.
+    A NaN or infinity in the optimisation ends the morph early with the last finite path
+    and a ``RuntimeWarning`` (``.termination`` says where). The solve releases the GIL.
+    Ctrl-C stops it after the current sweep and raises :class:`Interrupted` (a
+    ``KeyboardInterrupt``) whose ``.morph`` holds the path reached.
     Bad settings and inputs raise ``ValueError``, missing files ``FileNotFoundError``, a
     morph too large for the memory ``MemoryError``, with the program's messages.
     """
     callback, finish = _progress(progress)
     try:
-        return _native.morph(
+        result = _native.morph(
             a,
             b,
             K=K,
@@ -114,6 +117,10 @@ def morph(
         )
     finally:
         finish()
+    if result.termination != "completed":
+        # A NaN or infinity stopped the solver: the result is the last finite path.
+        warnings.warn(f"deepmorph: {result.termination}", RuntimeWarning, stacklevel=2)
+    return result
 
 
 def inbetween(morph: Morph, n: int) -> "numpy.ndarray":

@@ -2,6 +2,10 @@
 //! library's own code paths (`MorphJob::prepare` / `from_images`, `run`, `write`), so a morph
 //! made here is the morph `deepmorph morph` makes, and `Morph.save` writes what it writes.
 //!
+//! Like the program, the module allocates with mimalloc and runs the solver on a worker of
+//! its thread pool (`src/bin/deepmorph/main.rs` and `deepmorph::backend::on_a_worker` say
+//! why: 30–40 % of a morph's time otherwise).
+//!
 //! Settings start from the library's defaults (`MorphConfig::default`, `MorphConfig::deep`,
 //! `Quality::apply`) and are overridden by name through `config.json`'s own serialisation:
 //! no default is written twice. The solve runs with the GIL released; after every sweep the
@@ -32,6 +36,13 @@ use pyo3::exceptions::{
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyString};
 use serde_json::Value;
+
+/// The program's allocator (see `src/bin/deepmorph/main.rs`): glibc's malloc returns the
+/// solver's megabyte tensors to the kernel and page-faults them in again at every sweep.
+/// NumPy arrays made from Rust buffers free them through Rust, hence through this allocator
+/// too.
+#[global_allocator]
+static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 create_exception!(
     _native,
@@ -371,26 +382,44 @@ fn build_config(
     Ok(config)
 }
 
-/// Reports every sweep to Python: Ctrl-C and the progress callback. Its first exception
-/// stops the morph after the current sweep (through the interrupt flag) and is raised when
-/// the solve returns.
+/// The first exception of a morph (Ctrl-C, or the progress callback's): it stops the
+/// morph after the current sweep, through the interrupt flag, and is raised when the solve
+/// returns.
+struct Stop<'a> {
+    interrupt: &'a AtomicBool,
+    error: Mutex<Option<PyErr>>,
+}
+
+impl Stop<'_> {
+    fn raise(&self, error: PyErr) {
+        let mut first = self.error.lock().unwrap_or_else(|p| p.into_inner());
+        if first.is_none() {
+            *first = Some(error);
+        }
+        self.interrupt.store(true, Ordering::SeqCst);
+    }
+
+    fn take(&self) -> Option<PyErr> {
+        self.error.lock().unwrap_or_else(|p| p.into_inner()).take()
+    }
+}
+
+/// Reports every sweep to the progress callback, on the solver's thread.
 struct Watch<'a> {
     callback: Option<Py<PyAny>>,
-    interrupt: &'a AtomicBool,
-    error: Option<PyErr>,
+    stop: &'a Stop<'a>,
     warnings: Vec<String>,
 }
 
 impl Observer for Watch<'_> {
     fn sweep(&mut self, event: &SweepEvent<'_>) {
-        if self.error.is_some() {
+        let Some(callback) = &self.callback else {
+            return;
+        };
+        if self.stop.interrupt.load(Ordering::SeqCst) {
             return;
         }
         let outcome = Python::attach(|py| -> PyResult<()> {
-            py.check_signals()?;
-            let Some(callback) = &self.callback else {
-                return Ok(());
-            };
             let info = PyDict::new(py);
             info.set_item("level", event.level)?;
             info.set_item("levels", event.levels)?;
@@ -414,8 +443,7 @@ impl Observer for Watch<'_> {
             Ok(())
         });
         if let Err(error) = outcome {
-            self.error = Some(error);
-            self.interrupt.store(true, Ordering::SeqCst);
+            self.stop.raise(error);
         }
     }
 
@@ -685,6 +713,30 @@ impl Morph {
     }
 }
 
+/// Runs the morph on a worker of the solver's pool, as the program does
+/// ([`deepmorph::backend::on_a_worker`]), while this thread, which Python delivers signals
+/// to, checks for them every 50 ms: Python runs signal handlers on the main thread only,
+/// never on the solver's. Called with the GIL released.
+fn solve_watching_signals(
+    job: &MorphJob,
+    watch: &mut Watch<'_>,
+    stop: &Stop<'_>,
+) -> deepmorph::Result<MorphResult> {
+    std::thread::scope(|scope| {
+        let solver =
+            scope.spawn(|| deepmorph::backend::on_a_worker(|| job.run(watch, stop.interrupt)));
+        while !solver.is_finished() {
+            std::thread::sleep(std::time::Duration::from_millis(50));
+            if let Err(error) = Python::attach(|py| py.check_signals()) {
+                stop.raise(error);
+            }
+        }
+        solver
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    })
+}
+
 /// The native `morph`; `deepmorph.morph` (Python) documents it and adds `progress=True`.
 #[pyfunction]
 #[pyo3(signature = (a, b, *, K=None, model="rgb", vgg19=None, size=None, levels=None, sweeps=None, tol=None, quality=None, schedule=None, backend=None, points=None, align=None, progress=None, **params))]
@@ -724,19 +776,22 @@ fn morph(
         })
     })?;
     let interrupt = AtomicBool::new(false);
+    let stop = Stop {
+        interrupt: &interrupt,
+        error: Mutex::new(None),
+    };
     let mut watch = Watch {
         callback: progress,
-        interrupt: &interrupt,
-        error: None,
+        stop: &stop,
         warnings: Vec::new(),
     };
     let result = guarded("morph", || {
-        py.detach(|| job.run(&mut watch, &interrupt))
+        py.detach(|| solve_watching_signals(&job, &mut watch, &stop))
             .map_err(py_error)
     })?;
     let mut notes = job.notes().to_vec();
     notes.append(&mut watch.warnings);
-    let error = watch.error.take();
+    let error = stop.take();
     let morph = Py::new(py, Morph::new(py, job, result, notes)?)?;
     match error {
         None => Ok(morph.into_any()),

@@ -251,6 +251,8 @@ def test_ctrl_c_stops_after_the_sweep_and_keeps_the_path(tmp_path, pair):
     def interrupt(event):
         if event["level"] == 1 and event["sweep"] == 2:
             os.kill(os.getpid(), signal.SIGINT)
+            # The main thread checks for signals every 50 ms; hold the solver until it has.
+            time.sleep(0.3)
 
     with pytest.raises(KeyboardInterrupt) as caught:
         deepmorph.morph(*pair, progress=interrupt, **QUICK)
@@ -310,3 +312,9 @@ def test_deep_morph_with_the_stand_in_weights(tmp_path, pair):
     deepmorph.morph(*pair, model="deep", vgg19=str(weights), K=2, levels=2, sweeps=1, pre_sweeps=1,
                     size=(64, 64), progress=lambda e: phases.add(e["phase"]))
     assert phases == {"features", "joint"}
+
+
+def test_progress_true_reports_each_level_on_stderr(capsys, pair):
+    deepmorph.morph(*pair, progress=True, **QUICK)
+    # tqdm's bar where it is installed, else one line per level: either names the levels.
+    assert "level 2/2" in capsys.readouterr().err
