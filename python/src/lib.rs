@@ -223,6 +223,15 @@ fn named<T: serde::de::DeserializeOwned>(what: &str, value: &str, valid: &str) -
     })
 }
 
+/// A backend by name; `None`: the library's default (the first compiled of flex, ndarray,
+/// wgpu).
+fn backend_arg(backend: Option<&str>) -> PyResult<Backend> {
+    match backend {
+        Some(name) => named("backend", name, "'flex', 'ndarray', 'wgpu'"),
+        None => Ok(MorphConfig::default().backend),
+    }
+}
+
 /// Where a keyword of `**params` lives in `config.json`'s `config` object, searched in this
 /// order: the energy's parameters, iPALM's, the solver's, the deep model's, the top level.
 const PARAM_HOMES: [&[&str]; 5] = [
@@ -324,8 +333,8 @@ fn build_config(
     if let Some(schedule) = schedule {
         solver.ipalm.schedule = named("schedule", schedule, "'sequential', 'batched'")?;
     }
-    if let Some(backend) = backend {
-        config.backend = named::<Backend>("backend", backend, "'flex', 'ndarray', 'wgpu'")?;
+    if backend.is_some() {
+        config.backend = backend_arg(backend)?;
     }
     if let Some(align) = align {
         config.align = named("align", align, "'none', 'similarity', 'affine'")?;
@@ -821,10 +830,7 @@ fn evaluate(
     resample_truth: bool,
     backend: Option<&str>,
 ) -> PyResult<Py<PyAny>> {
-    let backend = match backend {
-        Some(name) => named::<Backend>("backend", name, "'flex', 'ndarray', 'wgpu'")?,
-        None => MorphConfig::default().backend,
-    };
+    let backend = backend_arg(backend)?;
     let metrics = guarded("evaluate", || {
         py.detach(|| {
             let device = backend.device_for(Precision::F32)?;
@@ -865,10 +871,7 @@ fn warp<'py>(
             )));
         }
     };
-    let backend = match backend {
-        Some(name) => named::<Backend>("backend", name, "'flex', 'ndarray', 'wgpu'")?,
-        None => MorphConfig::default().backend,
-    };
+    let backend = backend_arg(backend)?;
     let input = ImageArg::extract("image", image)?.into_image()?;
     let (warped, truth) = guarded("warp", || {
         py.detach(|| {
