@@ -468,7 +468,10 @@ struct Morph {
     // Boxed: Burn's tensors are over-aligned (64 bytes), more than Python's allocator
     // guarantees for the object that holds a pyclass inline.
     job: Box<MorphJob>,
+    /// Locked only with the GIL released (see [`Morph::with_result`]).
     result: Mutex<Box<MorphResult>>,
+    termination: String,
+    seconds: f64,
     frames: Py<PyAny>,
     deformations: Py<PyAny>,
     composed: Py<PyAny>,
@@ -591,17 +594,31 @@ impl Morph {
             energy: energy_columns(py, &result)?.unbind(),
             config: to_python(py, &result.record(&job))?.unbind(),
             metrics: Mutex::new(None),
+            termination: result.morph.termination.to_string(),
+            seconds: result.seconds,
             job: Box::new(job),
             result: Mutex::new(Box::new(result)),
             notes,
         })
     }
 
-    fn result(&self) -> std::sync::MutexGuard<'_, Box<MorphResult>> {
-        // A panic while measuring leaves the result as it was: the lock's poison is moot.
-        self.result
-            .lock()
-            .unwrap_or_else(|poison| poison.into_inner())
+    /// Runs `work` on the result with the GIL released, the lock taken and dropped there:
+    /// a thread that waited for the lock holding the GIL, while the lock's holder waits for
+    /// the GIL, would deadlock. A panic becomes a `RuntimeError`.
+    fn with_result<T: Send>(
+        &self,
+        py: Python<'_>,
+        what: &str,
+        work: impl FnOnce(&MorphResult) -> deepmorph::Result<T> + Send,
+    ) -> PyResult<T> {
+        guarded(what, || {
+            py.detach(|| {
+                // A panic in an earlier call leaves the result as it was: the poison is moot.
+                let result = self.result.lock().unwrap_or_else(|p| p.into_inner());
+                work(&result)
+            })
+            .map_err(py_error)
+        })
     }
 }
 
@@ -644,31 +661,27 @@ impl Morph {
     /// loads VGG19 once more).
     #[getter]
     fn metrics(&self, py: Python<'_>) -> PyResult<Py<PyAny>> {
-        let mut cached = self.metrics.lock().unwrap_or_else(|p| p.into_inner());
-        if let Some(metrics) = &*cached {
+        // The cache's lock is held with the GIL only, never across a release of it.
+        let cache = || self.metrics.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(metrics) = &*cache() {
             return Ok(metrics.clone_ref(py));
         }
-        let metrics = {
-            let result = self.result();
-            guarded("Morph.metrics", || {
-                py.detach(|| result.metrics(&self.job)).map_err(py_error)
-            })?
-        };
+        let metrics = self.with_result(py, "Morph.metrics", |r| r.metrics(&self.job))?;
         let metrics = to_python(py, &metrics)?.unbind();
-        *cached = Some(metrics.clone_ref(py));
+        *cache() = Some(metrics.clone_ref(py));
         Ok(metrics)
     }
 
     /// How the run ended: `"completed"`, or where it was interrupted or stopped.
     #[getter]
     fn termination(&self) -> String {
-        self.result().morph.termination.to_string()
+        self.termination.clone()
     }
 
     /// Seconds the solver ran.
     #[getter]
     fn seconds(&self) -> f64 {
-        self.result().seconds
+        self.seconds
     }
 
     /// What preparing and starting the morph told (inputs resized, the alignment found,
@@ -684,41 +697,30 @@ impl Morph {
     /// one holding other files never. Returns the folder's path.
     #[pyo3(signature = (dir, *, force = false))]
     fn save(&self, py: Python<'_>, dir: PathBuf, force: bool) -> PyResult<String> {
-        let result = self.result();
-        let path = guarded("Morph.save", || {
-            py.detach(|| {
-                let folder = self.job.output_folder(&dir, force)?;
-                result.write(&self.job, folder)
-            })
-            .map_err(py_error)
-        })?
-        .1;
+        let (_, path) = self.with_result(py, "Morph.save", |result| {
+            let folder = self.job.output_folder(&dir, force)?;
+            result.write(&self.job, folder)
+        })?;
         Ok(path.display().to_string())
     }
 
     /// `count` frames evenly spaced in time along the path (the `K + 1` computed frames
     /// among them, in-betweens following the deformations), float32 `[count, H, W, 3]`.
     fn inbetween<'py>(&self, py: Python<'py>, count: usize) -> PyResult<Bound<'py, PyAny>> {
-        let frames = {
-            let result = self.result();
-            guarded("Morph.inbetween", || {
-                py.detach(|| result.inbetween(count)).map_err(py_error)
-            })?
-        };
+        let frames = self.with_result(py, "Morph.inbetween", |r| r.inbetween(count))?;
         frames_array(py, &frames)
     }
 
-    fn __repr__(&self) -> String {
-        let result = self.result();
-        let (k, h, w) = (
-            result.frames.len().saturating_sub(1),
-            result.morph.grid.height(),
-            result.morph.grid.width(),
-        );
-        format!(
-            "<deepmorph.Morph K={k} {w}x{h} (WxH), {}, {:.1} s>",
-            result.morph.termination, result.seconds
-        )
+    fn __repr__(&self, py: Python<'_>) -> PyResult<String> {
+        let shape: (usize, usize, usize, usize) =
+            self.frames.bind(py).getattr("shape")?.extract()?;
+        let (frames, h, w, _) = shape;
+        Ok(format!(
+            "<deepmorph.Morph K={} {w}x{h} (WxH), {}, {:.1} s>",
+            frames.saturating_sub(1),
+            self.termination,
+            self.seconds
+        ))
     }
 }
 

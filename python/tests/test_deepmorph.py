@@ -322,3 +322,21 @@ def test_progress_true_reports_each_level_on_stderr(capsys, pair):
     deepmorph.morph(*pair, progress=True, **QUICK)
     # tqdm's bar where it is installed, else one line per level: either names the levels.
     assert "level 2/2" in capsys.readouterr().err
+
+
+def test_threads_share_a_morph_without_deadlock(tmp_path, pair):
+    m = deepmorph.morph(*pair, **QUICK)
+    done = []
+
+    def work(i):
+        folder = m.save(tmp_path / f"out{i}")
+        done.append((Path(folder).name, m.metrics["size"], m.termination, repr(m), m.inbetween(5).shape))
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert not any(t.is_alive() for t in threads), "a thread hangs on the morph"
+    assert sorted(d[0] for d in done) == [f"out{i}" for i in range(4)]
+    assert all(d[1:3] == ([32, 32], "completed") and d[4] == (5, 32, 32, 3) for d in done)
