@@ -72,7 +72,8 @@ pub enum Error {
 
     /// An output directory whose outputs would overwrite an input file.
     #[error(
-        "the output directory {} would overwrite the input {}: choose another -o",
+        "the output folder {} holds the input {}, and a run replaces its output folder \
+         whole: choose another -o",
         output.display(),
         input.display()
     )]
@@ -95,16 +96,19 @@ pub enum Error {
 
     /// A morph would need more memory than it may use.
     #[error(
-        "this morph needs about {needed_gib:.1} GiB ({what}) but the {limit_name} is \
-         {limit_gib:.1} GiB: use a smaller --size or --max-side, fewer steps -K, or raise \
-         --max-memory"
+        "this morph needs about {} ({what}) but {limit_name} is {}: use a smaller --size or \
+         --max-side or fewer steps -K{}",
+        gib_text(*needed_gib),
+        gib_text(*limit_gib),
+        if *limit_name == "--max-memory" { ", or raise --max-memory" } else { "" }
     )]
     Memory {
         /// The estimated peak, GiB.
         needed_gib: f64,
         /// The limit, GiB.
         limit_gib: f64,
-        /// Where the limit comes from (`--max-memory`, the available memory).
+        /// Where the limit comes from (`--max-memory`, the available memory, `ulimit -v`, the
+        /// control group), as the message's subject.
         limit_name: &'static str,
         /// The morph's size, in words.
         what: String,
@@ -150,3 +154,13 @@ impl Error {
 
 /// Shorthand for results of this crate.
 pub type Result<T, E = Error> = std::result::Result<T, E>;
+
+/// A memory size for messages: GiB to one decimal from 1 GiB up, MiB below (a limit of
+/// 0.05 GiB is not "0.0 GiB").
+fn gib_text(gib: f64) -> String {
+    if gib >= 1.0 {
+        format!("{gib:.1} GiB")
+    } else {
+        format!("{:.0} MiB", gib * 1024.0)
+    }
+}

@@ -14,12 +14,14 @@ use image::RgbImage as Rgb8;
 
 use crate::app::config::{Inputs, MorphConfig, WorkingSize};
 use crate::app::job::{MorphJob, MorphResult};
+use crate::app::memory;
 use crate::error::{Error, Result};
 use crate::eval::metrics::Metrics;
 use crate::io::animation::VideoFormat;
 use crate::io::output_folder::OutputFolder;
 use crate::io::outputs::{is_morph_output, written_name};
 use crate::io::points::{PointPair, split_by_segment};
+use crate::model::inbetween::MAX_FRAMES;
 use crate::solver::observer::{Observer, Termination};
 
 /// The most images a chain takes (a bound on the work a typo can start).
@@ -104,6 +106,10 @@ impl ChainJob {
                 format!("3 to {MAX_IMAGES} for a chain (two images are one morph)"),
             ));
         }
+        let mut config = config;
+        let count = images.len() - 1;
+        config.animation_frames =
+            segment_frames(config.animation_frames, count, config.solver.steps)?;
         let mut per_segment = match &config.points {
             Some(points) => split_by_segment(points, images.len() - 1)?,
             None => vec![None; images.len() - 1],
@@ -130,6 +136,22 @@ impl ChainJob {
         for (i, points) in per_segment.iter_mut().enumerate().skip(1) {
             segments.push(pair(with_points(&exact, points), i)?);
         }
+        // The segments run one at a time, but the chain holds every segment's images and
+        // the whole animation's frames until it is written.
+        let steps = exact.solver.steps;
+        let frames = count * (exact.animation_frames.unwrap_or(steps + 1) - 1) + 1;
+        let pixels = height * width;
+        let held = frames * pixels * 3 + count * 2 * pixels * 3 * size_of::<f32>();
+        let largest = segments.iter().map(MorphJob::estimated_peak_bytes).max();
+        memory::check_bytes(
+            largest.unwrap_or(0) + held as u64,
+            &format!(
+                "a chain of {count} segments, {width}x{height}, K = {steps}, {frames} animation \
+                 frames"
+            ),
+            exact.max_memory_gib,
+            exact.backend != crate::Backend::Wgpu,
+        )?;
         Ok(Self { segments, images })
     }
 
@@ -219,9 +241,50 @@ impl ChainJob {
     }
 }
 
+/// Each segment's frame count for a chain whose animation should hold `total` frames
+/// (`--frames`: the whole animation's, as for one morph), `None` for the computed ones.
+/// The animation then holds `count · (n − 1) + 1 ≤ total` frames.
+///
+/// # Errors
+///
+/// A `total` below the frames the model computes (`count · K + 1`) or above
+/// [`MAX_FRAMES`] (issue 43 #12: `--frames 600` gave each of 99 segments 600 frames).
+fn segment_frames(total: Option<usize>, count: usize, steps: usize) -> Result<Option<usize>> {
+    let Some(total) = total else {
+        return Ok(None);
+    };
+    let computed = count * steps + 1;
+    let most = MAX_FRAMES.max(computed);
+    if !(computed..=most).contains(&total) {
+        return Err(Error::invalid(
+            "frames",
+            total,
+            format!(
+                "for a chain of {count} segments with K = {steps}: at least {computed} (the \
+                 frames the model computes) and at most {most}"
+            ),
+        ));
+    }
+    let each = (total - 1) / count + 1;
+    Ok((each > steps + 1).then_some(each))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_chains_frames_are_its_whole_animations() {
+        // 99 segments of K = 15 compute 1486 frames: no more may be asked for.
+        assert_eq!(segment_frames(None, 99, 15).unwrap(), None);
+        let err = segment_frames(Some(600), 99, 15).unwrap_err().to_string();
+        assert!(err.contains("at least 1486"), "{err}");
+        assert_eq!(segment_frames(Some(1486), 99, 15).unwrap(), None);
+        // 3 segments of K = 10 and 600 frames: 200 each, 3 · 199 + 1 = 598 in all.
+        assert_eq!(segment_frames(Some(600), 3, 10).unwrap(), Some(200));
+        let err = segment_frames(Some(601), 3, 10).unwrap_err().to_string();
+        assert!(err.contains("at most 600"), "{err}");
+    }
 
     #[test]
     fn chain_folders_hold_segments_and_animations_only() {

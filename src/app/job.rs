@@ -22,6 +22,7 @@ use crate::eval::perceptual::feature_path;
 use crate::features::deep::deep_features;
 use crate::features::vgg::Vgg19;
 use crate::features::vgg::architecture::tap_channels;
+use crate::features::vgg::weights::Vgg19Weights;
 use crate::io::checkpoint::{inputs_digest, load_checkpoint, save_checkpoint};
 use crate::io::energy_log::EnergyLog;
 use crate::io::images::{RgbImage, write_atomically, write_png};
@@ -37,6 +38,7 @@ use crate::model::energy::landmarks::Landmarks;
 use crate::model::feature_model::FeatureModel;
 use crate::model::grid::{Grid, host_values};
 use crate::model::inbetween::Clip;
+use crate::read::is_regular_file;
 use crate::solver::ipalm::Schedule;
 use crate::solver::multilevel::{Draft, Morph, Multilevel};
 use crate::solver::observer::{Observer, Termination};
@@ -73,6 +75,10 @@ pub struct MorphResult {
     pub seconds: f64,
     /// The deep model: RMS of each VGG tap of the inputs before scaling.
     pub tap_rms: Option<Vec<f64>>,
+    /// VGG19's weights when their file is a pipe, which can be read only once: the
+    /// feature-space metric needs them again after the solve. A regular file is read again
+    /// instead (the weights are not held through the solve, for memory).
+    pipe_weights: Option<Vgg19Weights>,
 }
 
 impl MorphJob {
@@ -87,14 +93,18 @@ impl MorphJob {
         check_settings(&config, &inputs)?;
         match inputs {
             Inputs::Files { a, b } => {
-                let (image_a, image_b) = (RgbImage::load(&a)?, RgbImage::load(&b)?);
+                let ((image_a, warning_a), (image_b, warning_b)) =
+                    (RgbImage::read(&a)?, RgbImage::read(&b)?);
                 let sizes = (image_a.size(), image_b.size());
                 let absolute = |p: PathBuf| p.canonicalize().unwrap_or(p);
                 let inputs = Inputs::Files {
                     a: absolute(a),
                     b: absolute(b),
                 };
-                Self::prepare_images(config, inputs, (image_a, image_b), sizes)
+                let mut job = Self::prepare_images(config, inputs, (image_a, image_b), sizes)?;
+                let warnings = [warning_a, warning_b].into_iter().flatten();
+                job.notes.splice(0..0, warnings);
+                Ok(job)
             }
             Inputs::Demo => {
                 let side = match config.size {
@@ -335,9 +345,14 @@ impl MorphJob {
             self.images.0.to_tensor(&grid)?,
             self.images.1.to_tensor(&grid)?,
         );
+        let mut pipe_weights = None;
         let model = match &self.config.deep {
             Some(deep) => {
-                let vgg = Vgg19::load(&deep.vgg19, &device)?;
+                let weights = Vgg19Weights::read(&deep.vgg19)?;
+                if !is_regular_file(&deep.vgg19) {
+                    pipe_weights = Some(weights.clone());
+                }
+                let vgg = Vgg19::from_weights(weights, &device)?;
                 FeatureModel::Deep(deep_features(
                     &vgg,
                     u_a.clone(),
@@ -371,8 +386,10 @@ impl MorphJob {
         if let Some((level, sweep)) = self.inject_nonfinite {
             driver = driver.inject_nonfinite(level, sweep);
         }
-        if self.estimate_time {
-            observer.estimate(&driver.estimate_time(&device, &u_a, &u_b, &model)?);
+        if self.estimate_time
+            && let Some(estimate) = driver.estimate_time(&device, &u_a, &u_b, &model, interrupt)?
+        {
+            observer.estimate(&estimate);
         }
         let mut energy = EnergyLog::default();
         if let Some(dir) = &self.resume {
@@ -409,6 +426,7 @@ impl MorphJob {
                 FeatureModel::Deep(deep) => Some(deep.rms().to_vec()),
                 FeatureModel::Rgb => None,
             },
+            pipe_weights,
         })
     }
 }
@@ -659,7 +677,11 @@ impl MorphResult {
         // The deep model's network again (it is not kept through the solve, for memory);
         // should its file have gone meanwhile, the morph is still measured, without these.
         if let Some(deep) = &job.config.deep {
-            metrics.feature_path = Vgg19::load(&deep.vgg19, device)
+            let vgg = match &self.pipe_weights {
+                Some(weights) => Vgg19::from_weights(weights.clone(), device),
+                None => Vgg19::load(&deep.vgg19, device),
+            };
+            metrics.feature_path = vgg
                 .and_then(|vgg| feature_path(&vgg, &folder.grid, &folder.frames))
                 .ok();
         }

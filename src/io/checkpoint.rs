@@ -122,7 +122,18 @@ pub fn load_checkpoint(
     grid: impl Fn(usize) -> Result<Grid>,
 ) -> Result<Option<Resume>> {
     let path = dir.join(CHECKPOINT_HEADER);
+    let data_path = dir.join(CHECKPOINT_DATA);
     if !path.is_file() {
+        if data_path.exists() {
+            // Half a checkpoint: restarting from scratch would silently drop the work.
+            return Err(Error::Format {
+                path: path.clone(),
+                detail: format!(
+                    "is missing beside {CHECKPOINT_DATA}: the checkpoint cannot be read; \
+                     restore it, or start a new morph without --resume"
+                ),
+            });
+        }
         return Ok(None);
     }
     let bad = |detail: String| Error::Format {
@@ -149,22 +160,37 @@ pub fn load_checkpoint(
     let frame = c * h * w;
     let deformation = 2 * h * w;
     let count = 2 * (k + 1) * frame + 2 * k * deformation;
-    let data = read_bytes(
-        &dir.join(CHECKPOINT_DATA),
-        4 * count as u64,
-        "checkpoint values",
-    )?;
-    if data.len() != 4 * count {
-        return Err(bad(format!(
-            "{CHECKPOINT_DATA} holds {} bytes, its header says {}",
-            data.len(),
+    let mismatch = |bytes: String| {
+        bad(format!(
+            "says {CHECKPOINT_DATA} holds K = {k} steps of {c} channels at {h}x{w}, {} bytes, \
+             but it holds {bytes}: the two files do not belong together",
             4 * count
-        )));
+        ))
+    };
+    if let Ok(meta) = std::fs::metadata(&data_path)
+        && meta.is_file()
+        && meta.len() != 4 * count as u64
+    {
+        return Err(mismatch(meta.len().to_string()));
+    }
+    let data = read_bytes(&data_path, 4 * count as u64, "checkpoint values")?;
+    if data.len() != 4 * count {
+        return Err(mismatch(data.len().to_string()));
     }
     let values: Vec<f64> = data
         .chunks_exact(4)
         .map(|b| f64::from(f32::from_le_bytes(b.try_into().expect("4 bytes"))))
         .collect();
+    if let Some(at) = values.iter().position(|v| !v.is_finite()) {
+        return Err(Error::Format {
+            path: data_path.clone(),
+            detail: format!(
+                "value {at} is {}: a checkpoint holds finite numbers only (the file was \
+                 changed or damaged); start a new morph without --resume",
+                values[at]
+            ),
+        });
+    }
     let grid = grid(header.level)?;
     let mut at = 0;
     let mut take = |n: usize, size: usize, channels: usize| -> Vec<Tensor<4>> {

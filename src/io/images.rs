@@ -52,7 +52,19 @@ impl RgbImage {
     ///
     /// [`Error::Image`] naming the file if it cannot be read or decoded.
     pub fn load(path: &Path) -> Result<Self> {
-        Ok(Self::from_dynamic(&decode_image(path)?))
+        Ok(Self::read(path)?.0)
+    }
+
+    /// As [`load`](Self::load), with what the file's decoding should tell a person: a JPEG
+    /// whose data stops before its end marker is decoded with its missing rows grey by the
+    /// decoder, which says nothing (issue 43 #9).
+    ///
+    /// # Errors
+    ///
+    /// As [`load`](Self::load).
+    pub fn read(path: &Path) -> Result<(Self, Option<String>)> {
+        let (image, warning) = decode_image_noting(path)?;
+        Ok((Self::from_dynamic(&image), warning))
     }
 
     /// An 8-bit image as [`load`](Self::load) reads it from a PNG file.
@@ -186,6 +198,11 @@ pub const MAX_IMAGE_FILE_BYTES: u64 = 1 << 30;
 ///
 /// [`Error::Io`], [`Error::Format`] (too large) or [`Error::Image`] naming the file.
 pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
+    Ok(decode_image_noting(path)?.0)
+}
+
+/// [`decode_image`] with a warning for a file that decodes but is damaged.
+fn decode_image_noting(path: &Path) -> Result<(image::DynamicImage, Option<String>)> {
     let bytes = read_bytes(path, MAX_IMAGE_FILE_BYTES, "image file")?;
     let image_error = |cause| Error::Image {
         path: path.to_path_buf(),
@@ -220,7 +237,23 @@ pub fn decode_image(path: &Path) -> Result<image::DynamicImage> {
     limits.max_alloc = Some(8 * u64::from(MAX_IMAGE_SIDE).pow(2));
     let mut reader = reader();
     reader.limits(limits);
-    reader.decode().map_err(image_error)
+    let image = reader.decode().map_err(image_error)?;
+    let warning = (format == Some(image::ImageFormat::Jpeg) && !jpeg_has_end(&bytes)).then(|| {
+        format!(
+            "warning: {}: the JPEG data ends before its end marker (a truncated file?); the \
+             decoder filled what is missing",
+            path.display()
+        )
+    });
+    Ok((image, warning))
+}
+
+/// Whether a JPEG file holds its end-of-image marker (`FF D9`) near its end. Entropy-coded
+/// data never holds `FF D9` (a data byte `FF` is followed by `00`), so a file cut anywhere in
+/// its scan lacks it; a few kB of trailing bytes after it are tolerated, as decoders do.
+fn jpeg_has_end(bytes: &[u8]) -> bool {
+    let tail = &bytes[bytes.len().saturating_sub(4096)..];
+    tail.windows(2).any(|w| w == [0xFF, 0xD9])
 }
 
 /// `[0, 1]` → `0..=255`, rounded.
@@ -304,6 +337,32 @@ mod tests {
             .to_string();
         assert!(err.contains("missing.png"), "{err}");
         fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A JPEG cut in its scan data decodes (the decoder fills the rest) and is reported; the
+    /// whole file is not (issue 43 #9).
+    #[test]
+    fn a_truncated_jpeg_is_reported() {
+        let dir = std::env::temp_dir().join(format!("deepmorph-jpeg-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let img = image::RgbImage::from_fn(64, 48, |x, y| {
+            image::Rgb([(x * 4) as u8, (y * 5) as u8, ((x * y) % 256) as u8])
+        });
+        let whole = dir.join("whole.jpg");
+        img.save(&whole).unwrap();
+        let (_, warning) = RgbImage::read(&whole).unwrap();
+        assert_eq!(warning, None);
+        let bytes = std::fs::read(&whole).unwrap();
+        let cut = dir.join("cut.jpg");
+        std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).unwrap();
+        let (image, warning) = RgbImage::read(&cut).unwrap();
+        assert_eq!(image.size(), (48, 64));
+        let warning = warning.expect("a warning for the truncated file");
+        assert!(
+            warning.contains("cut.jpg") && warning.contains("end marker"),
+            "{warning}"
+        );
+        std::fs::remove_dir_all(&dir).ok();
     }
 
     /// TGA has no signature: it is read by its extension (README lists it among the inputs).

@@ -3,7 +3,9 @@
 //!
 //! [`OutputFolder::begin`] checks the target before any work: it may be new, empty, or a
 //! folder that holds nothing but outputs of ours (replaced only with `force`); a folder that
-//! holds anything else is refused, so no user file is ever deleted. Files are then written
+//! holds anything else is refused, so no user file is ever deleted; the folder must also
+//! hold [`OUTPUT_MARKER`], which every output folder gets, as names alone prove nothing.
+//! Files are then written
 //! into a fresh hidden sibling, `.<name>.deepmorph-<pid>`, whose creation is the proof that
 //! the target can be written (before hours of solving, not after). [`OutputFolder::commit`]
 //! moves it into place: on Linux one atomic exchange (`renameat2(RENAME_EXCHANGE)`), after
@@ -28,6 +30,10 @@ pub struct OutputFolder {
 const STAGING_TAG: &str = ".deepmorph-";
 /// What marks a previous output moved aside while two plain renames replace it.
 const ASIDE_TAG: &str = "old-";
+/// The file every output folder of this program holds: a folder without it is never taken
+/// for a previous output, whatever its file names (issue 43 #15: a user's own `a.png` and
+/// `config.json` were replaced by `--force`).
+pub const OUTPUT_MARKER: &str = ".deepmorph-output";
 
 impl OutputFolder {
     /// Checks `target` and creates the staging folder beside it.
@@ -67,8 +73,26 @@ impl OutputFolder {
         };
         std::fs::create_dir_all(&parent).map_err(unwritable)?;
         let parent = parent.canonicalize().map_err(unwritable)?;
+        // The staging folder's name is the target's with a dot, a tag and the process id.
+        let longest = 255 - 1 - STAGING_TAG.len() - ASIDE_TAG.len() - 10;
+        if name.len() > longest {
+            return Err(refuse(format!(
+                "has a last component of {} bytes: at most {longest} (the hidden staging \
+                 folder beside it adds {} to the name)",
+                name.len(),
+                255 - longest
+            )));
+        }
         let target_path = parent.join(&name);
         if let Ok(meta) = std::fs::symlink_metadata(&target_path) {
+            if meta.file_type().is_symlink() {
+                let to = std::fs::read_link(&target_path).unwrap_or_default();
+                return Err(refuse(format!(
+                    "is a symbolic link (to {}): the output folder is replaced whole, so give \
+                     the folder itself or a new one",
+                    to.display()
+                )));
+            }
             if !meta.is_dir() {
                 return Err(refuse("exists and is not a folder".into()));
             }
@@ -84,10 +108,15 @@ impl OutputFolder {
             }
             let mut foreign = Vec::new();
             let mut entries = 0;
+            let mut marked = false;
             for entry in std::fs::read_dir(&target_path).map_err(io_error(&target_path))? {
                 let entry = entry.map_err(io_error(&target_path))?;
                 let file_name = entry.file_name().to_string_lossy().into_owned();
                 let kind = entry.file_type().ok();
+                if file_name == OUTPUT_MARKER && kind.is_some_and(|t| t.is_file()) {
+                    marked = true;
+                    continue;
+                }
                 let ours = match kind {
                     Some(t) if t.is_file() => owned(&file_name),
                     Some(t) if t.is_dir() => {
@@ -120,6 +149,13 @@ impl OutputFolder {
                     }
                 )));
             }
+            if entries > 0 && !marked {
+                return Err(refuse(format!(
+                    "holds files named like deepmorph's outputs but not its {OUTPUT_MARKER} \
+                     file, so they are not known to be a previous output (they may be yours, \
+                     or from a version before the marker); choose a new or empty folder"
+                )));
+            }
             if entries > 0 && !force {
                 return Err(refuse(
                     "holds a previous output: pass --force to replace it (it stays intact \
@@ -150,11 +186,10 @@ impl OutputFolder {
             staging,
             committed: false,
         };
-        // Creating a folder can succeed where writing into it cannot (quotas, odd mounts).
-        let probe = folder.staging.join(".writable");
-        std::fs::write(&probe, b"")
-            .and_then(|()| std::fs::remove_file(&probe))
-            .map_err(unwritable)?;
+        // Creating a folder can succeed where writing into it cannot (quotas, odd mounts):
+        // the marker is the first file written.
+        let marker = format!("written by deepmorph {}\n", env!("CARGO_PKG_VERSION"));
+        std::fs::write(folder.staging.join(OUTPUT_MARKER), marker).map_err(unwritable)?;
         Ok(folder)
     }
 
@@ -364,7 +399,7 @@ mod tests {
         assert!(!target.exists());
         assert_eq!(folder.commit().unwrap(), target);
         assert_eq!(listing(&dir), ["run"]);
-        assert_eq!(listing(&target), ["a.out"]);
+        assert_eq!(listing(&target), [OUTPUT_MARKER, "a.out"]);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -375,6 +410,10 @@ mod tests {
         std::fs::create_dir(&target).unwrap();
         std::fs::write(target.join("old.out"), b"old").unwrap();
         std::fs::write(target.join("stale.out"), b"old").unwrap();
+        // Our names without our marker: never replaced.
+        let err = OutputFolder::begin(&target, &[], ours, true).unwrap_err();
+        assert!(err.to_string().contains(OUTPUT_MARKER), "{err}");
+        std::fs::write(target.join(OUTPUT_MARKER), b"").unwrap();
         let err = OutputFolder::begin(&target, &[], ours, false).unwrap_err();
         assert!(err.to_string().contains("--force"), "{err}");
         let folder = OutputFolder::begin(&target, &[], ours, true).unwrap();
@@ -382,12 +421,12 @@ mod tests {
         // Dropped without commit (a failed run): the previous output is untouched.
         drop(folder);
         assert_eq!(listing(&dir), ["run"]);
-        assert_eq!(listing(&target), ["old.out", "stale.out"]);
+        assert_eq!(listing(&target), [OUTPUT_MARKER, "old.out", "stale.out"]);
         let folder = OutputFolder::begin(&target, &[], ours, true).unwrap();
         std::fs::write(folder.path().join("new.out"), b"new").unwrap();
         folder.commit().unwrap();
         assert_eq!(listing(&dir), ["run"]);
-        assert_eq!(listing(&target), ["new.out"]);
+        assert_eq!(listing(&target), [OUTPUT_MARKER, "new.out"]);
         std::fs::remove_dir_all(&dir).unwrap();
     }
 
@@ -423,10 +462,11 @@ mod tests {
         let aside = dir.join(format!(".run{STAGING_TAG}{ASIDE_TAG}4194306"));
         std::fs::create_dir(&aside).unwrap();
         std::fs::write(aside.join("old.out"), b"old").unwrap();
-        let folder = OutputFolder::begin(&dir.join("run"), &[], ours, false).unwrap();
+        std::fs::write(aside.join(OUTPUT_MARKER), b"").unwrap();
+        let folder = OutputFolder::begin(&dir.join("run"), &[], ours, true).unwrap();
         if cfg!(target_os = "linux") {
             assert!(!dead.exists());
-            assert_eq!(listing(&dir.join("run")), ["old.out"]);
+            assert_eq!(listing(&dir.join("run")), [OUTPUT_MARKER, "old.out"]);
         }
         drop(folder);
         std::fs::remove_dir_all(&dir).unwrap();

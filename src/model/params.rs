@@ -75,12 +75,23 @@ impl EnergyParams {
 /// The largest `σ` and `ρ` of the anisotropy, in pixels.
 pub const MAX_SMOOTHING: f64 = 100.0;
 
-/// Checks that `value` is finite and `> 0`.
+/// The range of a model parameter (weights, widths, `η`): the defaults span 1e-6 … 1e3,
+/// and the energy is computed in float32, where a factor past 1e12 (or below 1e-12, in a
+/// denominator) meets the squares of the terms and overflows to infinity (issue 43 #11:
+/// `--lambda 1e308` and `--delta 1e-320` made NaN before the first sweep).
+pub const PARAMETER_RANGE: (f64, f64) = (1e-12, 1e12);
+
+/// Checks that `value` is a number in [`PARAMETER_RANGE`].
 pub(crate) fn positive(name: &'static str, value: f64) -> Result<()> {
-    if value.is_finite() && value > 0.0 {
+    let (least, most) = PARAMETER_RANGE;
+    if (least..=most).contains(&value) {
         Ok(())
     } else {
-        Err(Error::invalid(name, value, "a finite number > 0"))
+        Err(Error::invalid(
+            name,
+            value,
+            format!("a number in [{least:e}, {most:e}] (the model computes in float32)"),
+        ))
     }
 }
 
@@ -103,5 +114,16 @@ mod tests {
             ..EnergyParams::rgb()
         };
         assert!(bad.validate().unwrap_err().to_string().contains("mu = -1"));
+        // Finite but past what float32 energies hold (issue 43 #11).
+        for (name, value) in [("lambda", 1e308), ("delta", 1e-320), ("xi2", 1e13)] {
+            let mut bad = EnergyParams::rgb();
+            match name {
+                "lambda" => bad.lambda = value,
+                "delta" => bad.delta = value,
+                _ => bad.xi2 = value,
+            }
+            let msg = bad.validate().unwrap_err().to_string();
+            assert!(msg.contains(name) && msg.contains("[1e-12, 1e12]"), "{msg}");
+        }
     }
 }

@@ -16,6 +16,7 @@
 //! not quite the sweeps of a running level (docs/benchmarks.md compares it with measured
 //! runs); the progress report rescales the remaining time by how fast the run actually goes.
 
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use burn::tensor::{Device, Tensor};
@@ -30,6 +31,11 @@ use crate::solver::observer::Phase;
 /// The second calibration level is the first with at least this many pixels (64²), where a
 /// sweep's time is mostly work, not overhead (or the finest, if smaller).
 pub const CALIBRATION_PIXELS: usize = 64 * 64;
+
+/// The most steps a calibration path has: the default `K` = 15 is timed whole, and a path
+/// of thousands of steps is timed on a part (its first sweep would otherwise take as long
+/// as a sweep of the morph, tens of seconds before the morph even starts).
+pub const CALIBRATION_STEPS: usize = 16;
 
 /// A morph's predicted time, level by level.
 #[derive(Clone, Debug, PartialEq)]
@@ -80,7 +86,8 @@ fn time_sweeps(
     state: &mut LevelState,
     kind: SweepKind,
     sweeps: usize,
-) -> Result<f64> {
+    interrupt: &AtomicBool,
+) -> Result<Option<f64>> {
     // As the driver runs them: each sweep starts from what the previous one carried.
     let mut carry = SweepCarry::default();
     let mut sweep = |state: &mut LevelState| -> Result<()> {
@@ -92,15 +99,20 @@ fn time_sweeps(
     sweep(state)?;
     let started = Instant::now();
     for _ in 0..sweeps {
+        if interrupt.load(Ordering::Relaxed) {
+            return Ok(None);
+        }
         sweep(state)?;
     }
-    Ok(started.elapsed().as_secs_f64() / sweeps as f64)
+    Ok(Some(started.elapsed().as_secs_f64() / sweeps as f64))
 }
 
 impl Multilevel {
     /// Times sweeps on two levels of this morph (see the module's documentation) and
     /// predicts each level's sweep time: a fraction of a second to a few seconds, on the
-    /// device that will run the morph.
+    /// device that will run the morph. The timed paths have at most [`CALIBRATION_STEPS`]
+    /// steps (a sweep's cost is linear in `K`), so the calibration stays short at any `K`;
+    /// `None` if `interrupt` was raised meanwhile (checked between the timed sweeps).
     ///
     /// # Errors
     ///
@@ -111,13 +123,15 @@ impl Multilevel {
         u_a: &Tensor<4>,
         u_b: &Tensor<4>,
         model: &FeatureModel,
-    ) -> Result<TimeEstimate> {
+        interrupt: &AtomicBool,
+    ) -> Result<Option<TimeEstimate>> {
         let started = Instant::now();
         let cfg = self.config();
         let [_, _, h, w] = u_a.dims();
         let sizes = cfg.level_sizes(h, w)?;
         let full = Grid::new(h, w, device, u_a.dtype())?;
         let k = cfg.steps;
+        let timed_steps = k.min(CALIBRATION_STEPS);
         // Two points whenever there are two levels: the coarsest, and the first level above
         // it of at least CALIBRATION_PIXELS (else the finest). One point read as all rate
         // would scale the coarsest level's fixed part up with the pixels (measured: a 256²
@@ -127,11 +141,11 @@ impl Multilevel {
             .skip(1)
             .position(|&(lh, lw)| lh * lw >= CALIBRATION_PIXELS)
             .map_or(sizes.len() - 1, |p| p + 1);
-        // Work of a sweep on each level: K · C · H · W.
+        // Work of a timed sweep on each level: K · C · H · W with the timed K.
         let mut work = Vec::with_capacity(sizes.len());
         for (level, &(lh, lw)) in sizes.iter().enumerate() {
             let channels = model.layout(sizes.len() - 1 - level)?.channels();
-            work.push((k * channels * lh * lw) as f64);
+            work.push((timed_steps * channels * lh * lw) as f64);
         }
         let mut timed = Vec::new();
         let mut features_ratio = 0.0;
@@ -145,11 +159,19 @@ impl Multilevel {
             let downsampling = sizes.len() - 1 - level;
             let (layout, f_a, f_b) = level_endpoints(model, &full, &grid, u_a, u_b, downsampling)?;
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
-            let mut state = LevelState::initial(&grid, &layout, f_a, f_b, k, cfg.params.delta)?;
-            let joint = time_sweeps(&ipalm, &mut state, SweepKind::Joint, 1)?;
+            let mut state =
+                LevelState::initial(&grid, &layout, f_a, f_b, timed_steps, cfg.params.delta)?;
+            let Some(joint) = time_sweeps(&ipalm, &mut state, SweepKind::Joint, 1, interrupt)?
+            else {
+                return Ok(None);
+            };
             if level == second && model.pre_sweeps() > 0 {
-                features_ratio =
-                    time_sweeps(&ipalm, &mut state, SweepKind::FeaturesOnly, 1)? / joint;
+                let Some(features) =
+                    time_sweeps(&ipalm, &mut state, SweepKind::FeaturesOnly, 1, interrupt)?
+                else {
+                    return Ok(None);
+                };
+                features_ratio = features / joint;
             }
             timed.push((work[level], joint));
         }
@@ -162,15 +184,21 @@ impl Multilevel {
             [(w1, t1), ..] => (0.0, t1 / w1),
             [] => unreachable!("at least one level is timed"),
         };
-        let joint: Vec<f64> = work.iter().map(|&wk| fixed + rate * wk).collect();
-        Ok(TimeEstimate {
+        // Nearly all of a sweep is per step (the fixed part too: launches and reductions
+        // of each step's warps), so a sweep of `K` steps costs `K / timed` timed sweeps.
+        let per_step = k as f64 / timed_steps as f64;
+        let joint: Vec<f64> = work
+            .iter()
+            .map(|&wk| per_step * (fixed + rate * wk))
+            .collect();
+        Ok(Some(TimeEstimate {
             features_only: joint.iter().map(|t| t * features_ratio).collect(),
             joint,
             sweeps: cfg.sweeps,
             pre_sweeps: model.pre_sweeps(),
             early_stops: cfg.tolerance > 0.0,
             calibration_seconds: started.elapsed().as_secs_f64(),
-        })
+        }))
     }
 }
 

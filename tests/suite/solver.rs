@@ -496,9 +496,11 @@ fn time_estimate_is_linear_in_the_work_of_each_level() {
     let grid = Grid::new(64, 64, &device, Precision::F32.dtype()).unwrap();
     let (a, b) = (blob(&grid, 28.0, 28.0, 5.0), blob(&grid, 34.0, 36.0, 5.0));
     let driver = Multilevel::new(small(3, 3, 7)).unwrap();
+    let never = AtomicBool::new(false);
     let estimate = driver
-        .estimate_time(&device, &a, &b, &FeatureModel::Rgb)
-        .unwrap();
+        .estimate_time(&device, &a, &b, &FeatureModel::Rgb, &never)
+        .unwrap()
+        .expect("not interrupted");
     let j = &estimate.joint;
     assert_eq!(j.len(), 3);
     assert!(j.iter().all(|t| t.is_finite() && *t > 0.0), "{j:?}");
@@ -513,4 +515,47 @@ fn time_estimate_is_linear_in_the_work_of_each_level() {
     assert!((estimate.total() - total).abs() <= 1e-12 * total);
     assert_eq!(estimate.remaining_after(2, Phase::Joint, 7), 0.0);
     assert!(estimate.early_stops && estimate.calibration_seconds > 0.0);
+    // An interrupt raised before it (a signal during the calibration) skips it.
+    let raised = AtomicBool::new(true);
+    let skipped = driver
+        .estimate_time(&device, &a, &b, &FeatureModel::Rgb, &raised)
+        .unwrap();
+    assert!(skipped.is_none());
+}
+
+/// A path of thousands of steps is calibrated on [`CALIBRATION_STEPS`] of them and the
+/// timing scaled by `K` (issue 43 #10: the calibration of K = 4000 at 32² took 38 s, with
+/// no way to interrupt it): the prediction for `K` = 1000 is 62.5× the one for 16, within
+/// the spread of two timings.
+#[test]
+fn time_estimate_of_many_steps_times_a_part_of_the_path() {
+    use deepmorph::model::feature_model::FeatureModel;
+    use deepmorph::solver::estimate::CALIBRATION_STEPS;
+    let device = device(common::fast_cpu_backend(), Precision::F32, true);
+    let grid = Grid::new(32, 32, &device, Precision::F32.dtype()).unwrap();
+    let (a, b) = (blob(&grid, 14.0, 14.0, 4.0), blob(&grid, 17.0, 18.0, 4.0));
+    let never = AtomicBool::new(false);
+    let estimate = |k: usize| {
+        let started = std::time::Instant::now();
+        let e = Multilevel::new(small(k, 2, 5))
+            .unwrap()
+            .estimate_time(&device, &a, &b, &FeatureModel::Rgb, &never)
+            .unwrap()
+            .unwrap();
+        (e, started.elapsed().as_secs_f64())
+    };
+    let (short, short_seconds) = estimate(CALIBRATION_STEPS);
+    let (long, long_seconds) = estimate(1000);
+    // Timed on 16 steps either way: the long path's calibration is not 60× longer.
+    assert!(
+        long_seconds < 5.0 * short_seconds.max(0.05),
+        "calibration of K = 1000 took {long_seconds} s, of K = 16 {short_seconds} s"
+    );
+    let ratio = long.joint[1] / short.joint[1];
+    assert!(
+        (20.0..200.0).contains(&ratio),
+        "{:?} against {:?}: ratio {ratio}, not about 1000 / 16",
+        long.joint,
+        short.joint
+    );
 }

@@ -35,6 +35,29 @@ static GLOBAL: mimalloc::MiMalloc = mimalloc::MiMalloc;
 /// must not remove the staging folder under the writer.
 static WRITING: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
+/// Raised when the solver has reported its first event (the time estimate, the landmark
+/// start or a sweep). Before that nothing worth writing exists, and the work may be blocked
+/// where no flag is looked at (opening a pipe that has no writer yet, reading the weights,
+/// VGG19's forward passes): a signal then ends the run at once.
+static SOLVING: AtomicBool = AtomicBool::new(false);
+
+/// The observer that raises [`SOLVING`].
+struct SolveStarted;
+
+impl deepmorph::solver::observer::Observer for SolveStarted {
+    fn sweep(&mut self, _: &deepmorph::solver::observer::SweepEvent<'_>) {
+        SOLVING.store(true, Ordering::SeqCst);
+    }
+
+    fn estimate(&mut self, _: &deepmorph::solver::estimate::TimeEstimate) {
+        SOLVING.store(true, Ordering::SeqCst);
+    }
+
+    fn initialised(&mut self, _: &deepmorph::solver::observer::Initialisation) {
+        SOLVING.store(true, Ordering::SeqCst);
+    }
+}
+
 /// Exit status of an error: bad input, unreadable or unwritable files, no backend.
 const EXIT_ERROR: i32 = 1;
 /// Exit status of a morph stopped by a NaN or infinity in the optimisation; its outputs were
@@ -119,7 +142,10 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
         eprintln!("{}", job.describe());
     }
     let mut progress = Progress::new(verbosity(args));
-    let result = job.run(&mut (&mut progress, &mut interrupt_at), &interrupt)?;
+    let result = job.run(
+        &mut (&mut progress, (&mut interrupt_at, SolveStarted)),
+        &interrupt,
+    )?;
     drop(progress);
     let writing = WRITING
         .lock()
@@ -153,26 +179,30 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
 }
 
 /// Turns SIGINT, SIGTERM and SIGHUP (ctrlc's `termination` feature) into a raised flag: the
-/// solver stops after the current sweep and the outputs are written. A second signal aborts,
-/// removing `staging` and leaving the previous output as it was, unless the outputs are being
-/// written (a second or so): those are finished first, so the staging folder is never
-/// removed under the writer.
+/// solver stops after the current sweep and the outputs are written. A signal before the
+/// solve began ([`SOLVING`]), or a second signal, aborts at once, removing `staging` and
+/// leaving the previous output as it was, unless the outputs are being written (a second or
+/// so): those are finished first, so the staging folder is never removed under the writer.
 fn stop_on_signals(staging: PathBuf) -> Result<Arc<AtomicBool>> {
     let interrupt = Arc::new(AtomicBool::new(false));
     let flag = Arc::clone(&interrupt);
     ctrlc::set_handler(move || {
-        if flag.swap(true, Ordering::SeqCst) {
-            // A second signal aborts, leaving the previous output as it was, unless the
-            // outputs are being written (a second or so): those are finished first, so the
-            // staging folder is never removed under the writer.
-            if let Ok(_not_writing) = WRITING.try_lock() {
-                let _ = std::fs::remove_dir_all(&staging);
-                std::process::exit(EXIT_INTERRUPTED);
-            }
-            eprintln!("\nthe outputs are being written; they will be complete in a moment");
+        let again = flag.swap(true, Ordering::SeqCst);
+        let solving = SOLVING.load(Ordering::SeqCst);
+        if !again && solving {
+            eprintln!(
+                "\ninterrupted: stopping after this sweep and writing the outputs (signal again to abort)"
+            );
             return;
         }
-        eprintln!("\ninterrupted: stopping after this sweep and writing the outputs (signal again to abort)");
+        if let Ok(_not_writing) = WRITING.try_lock() {
+            let _ = std::fs::remove_dir_all(&staging);
+            if !solving {
+                eprintln!("\ninterrupted before the solve began: nothing written");
+            }
+            std::process::exit(EXIT_INTERRUPTED);
+        }
+        eprintln!("\nthe outputs are being written; they will be complete in a moment");
     })
     .context("installing the signal handler")?;
     Ok(interrupt)
@@ -196,7 +226,7 @@ fn chain(config: MorphConfig, images: Vec<PathBuf>, args: &RunArgs) -> Result<i3
     let quiet = args.quiet;
     let outcome = job.run(
         folder,
-        &mut progress,
+        &mut (&mut progress, SolveStarted),
         &interrupt,
         |i, segment| {
             if !quiet {

@@ -64,8 +64,9 @@ impl Vgg19Weights {
     /// [`Error::Io`] if the file cannot be read; [`Error::Format`] naming what is wrong
     /// with it (not VGG19, which convolution is missing or has which shape, truncation).
     pub fn read(path: &Path) -> Result<Self> {
-        // The whole VGG19 with its classifier is 548 MB in float32.
-        let bytes = crate::read::read_bytes(path, 2 << 30, "VGG19 weights file")?;
+        // The whole VGG19 with its classifier is 548 MB in float32; the limit leaves room
+        // for a file with more beside it, not for one that would need gigabytes to parse.
+        let bytes = crate::read::read_bytes(path, 1 << 30, "VGG19 weights file")?;
         Self::parse(path, bytes)
     }
 
