@@ -160,7 +160,9 @@ pub type Result<T, E = Error> = std::result::Result<T, E>;
 fn gib_text(gib: f64) -> String {
     if gib >= 1.0 {
         format!("{gib:.1} GiB")
-    } else {
+    } else if gib * 1024.0 >= 1.0 {
         format!("{:.0} MiB", gib * 1024.0)
+    } else {
+        format!("{:.0} KiB", gib * 1024.0 * 1024.0)
     }
 }

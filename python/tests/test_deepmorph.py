@@ -212,7 +212,7 @@ def test_defaults_are_the_librarys():
         (dict(schedule="random"), ValueError, "schedule"),
         (dict(size="big"), ValueError, "size"),
         (dict(points=[[1.0, 2.0, 3.0]]), ValueError, "points"),
-        (dict(max_memory=1e-6), MemoryError, "GiB"),
+        (dict(max_memory=1e-6), MemoryError, "needs about"),
         (dict(model="deep", vgg19="/nonexistent/vgg19.onnx", size=(64, 64)), FileNotFoundError, "nonexistent"),
     ],
 )
