@@ -53,6 +53,7 @@ pub mod eval;
 pub mod features;
 #[cfg(test)]
 mod fuzz;
+pub mod host_memory;
 pub mod io;
 pub mod model;
 pub mod read;

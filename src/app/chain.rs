@@ -18,7 +18,7 @@ use crate::app::memory;
 use crate::error::{Error, Result};
 use crate::eval::metrics::Metrics;
 use crate::io::animation::VideoFormat;
-use crate::io::output_folder::OutputFolder;
+use crate::io::output_folder::{OutputFolder, mark_as_output};
 use crate::io::outputs::{is_morph_output, written_name};
 use crate::io::points::{PointPair, split_by_segment};
 use crate::model::inbetween::MAX_FRAMES;
@@ -212,6 +212,7 @@ impl ChainJob {
                 path: dir.clone(),
                 cause,
             })?;
+            mark_as_output(&dir)?;
             let guard = lock();
             let metrics = result.write_files(job, &dir)?;
             let animation = result.animation(job)?;

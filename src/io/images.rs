@@ -5,6 +5,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use burn::tensor::Tensor;
+use image::ImageDecoder;
 use image::imageops::FilterType;
 
 use crate::error::{Error, Result};
@@ -73,13 +74,19 @@ impl RgbImage {
     }
 
     fn from_dynamic(img: &image::DynamicImage) -> Self {
-        let rgb = img.to_rgb32f();
-        let (w, h) = (rgb.width() as usize, rgb.height() as usize);
+        let (w, h) = (img.width() as usize, img.height() as usize);
         let mut data = vec![0.0f32; 3 * h * w];
-        for (x, y, p) in rgb.enumerate_pixels() {
-            let at = y as usize * w + x as usize;
-            for c in 0..3 {
-                data[c * h * w + at] = p[c].clamp(0.0, 1.0);
+        // Converted a band of rows at a time: a float copy of the whole image would add 12
+        // bytes a pixel to the peak (3.2 GB for a 16384² input). Per pixel, so the same.
+        const BAND: u32 = 64;
+        for top in (0..img.height()).step_by(BAND as usize) {
+            let rows = BAND.min(img.height() - top);
+            let band = img.crop_imm(0, top, img.width(), rows).to_rgb32f();
+            for (x, y, p) in band.enumerate_pixels() {
+                let at = (top + y) as usize * w + x as usize;
+                for c in 0..3 {
+                    data[c * h * w + at] = p[c].clamp(0.0, 1.0);
+                }
             }
         }
         Self {
@@ -230,11 +237,30 @@ fn decode_image_noting(path: &Path) -> Result<(image::DynamicImage, Option<Strin
             ),
         });
     }
+    // Decoded, converted to float and resized, an image takes its decoded bytes plus 24 a
+    // pixel at the peak: refused before decoding if that does not fit the memory this
+    // process may take (issue 43 #6: a 783 kB PNG of 16384² zeros took 7.1 GB, and under
+    // `ulimit -v` the allocation failed with a panic).
+    let decoded = reader().into_decoder().map_err(image_error)?.total_bytes();
+    let needed = decoded.saturating_add(24 * u64::from(w) * u64::from(h));
+    if let Some((room, limit)) = crate::host_memory::host_limit()
+        && needed > room
+    {
+        return Err(Error::Format {
+            path: path.to_path_buf(),
+            detail: format!(
+                "a {w}x{h} image needs about {:.1} GiB to read and resize, more than {limit} \
+                 ({:.1} GiB): give a smaller image",
+                needed as f64 / f64::from(1u32 << 30),
+                room as f64 / f64::from(1u32 << 30),
+            ),
+        });
+    }
     let mut limits = image::Limits::default();
     limits.max_image_width = Some(MAX_IMAGE_SIDE);
     limits.max_image_height = Some(MAX_IMAGE_SIDE);
-    // 16384² at 16-bit RGBA: what a header within the side limit may honestly need.
-    limits.max_alloc = Some(8 * u64::from(MAX_IMAGE_SIDE).pow(2));
+    // The decoder may allocate what the header says the image holds, and its own buffers.
+    limits.max_alloc = Some(decoded.saturating_add(64 << 20));
     let mut reader = reader();
     reader.limits(limits);
     let image = reader.decode().map_err(image_error)?;

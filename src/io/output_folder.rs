@@ -188,8 +188,10 @@ impl OutputFolder {
         };
         // Creating a folder can succeed where writing into it cannot (quotas, odd mounts):
         // the marker is the first file written.
-        let marker = format!("written by deepmorph {}\n", env!("CARGO_PKG_VERSION"));
-        std::fs::write(folder.staging.join(OUTPUT_MARKER), marker).map_err(unwritable)?;
+        mark_as_output(&folder.staging).map_err(|e| match e {
+            Error::Io { cause, .. } => unwritable(cause),
+            other => other,
+        })?;
         Ok(folder)
     }
 
@@ -257,16 +259,32 @@ impl Drop for OutputFolder {
 }
 
 /// Whether every entry of the subfolder `dir` (named `name`) is a file that `owned` accepts
-/// as `name/file`.
+/// as `name/file`, or its own [`OUTPUT_MARKER`] (a chain's segment folders are outputs of
+/// their own, which `--resume` may replace).
 fn owned_subfolder(dir: &Path, name: &str, owned: &impl Fn(&str) -> bool) -> bool {
     let Ok(entries) = std::fs::read_dir(dir) else {
         return false;
     };
     entries.into_iter().all(|entry| {
         entry.is_ok_and(|e| {
+            let file = e.file_name().to_string_lossy().into_owned();
             e.file_type().is_ok_and(|t| t.is_file())
-                && owned(&format!("{name}/{}", e.file_name().to_string_lossy()))
+                && (file == OUTPUT_MARKER || owned(&format!("{name}/{file}")))
         })
+    })
+}
+
+/// Marks `dir` as an output folder of this program (what [`OutputFolder::begin`] does for
+/// the folders it creates; a chain's segment folders get it this way).
+///
+/// # Errors
+///
+/// [`Error::Io`] if the marker cannot be written.
+pub fn mark_as_output(dir: &Path) -> Result<()> {
+    let marker = format!("written by deepmorph {}\n", env!("CARGO_PKG_VERSION"));
+    std::fs::write(dir.join(OUTPUT_MARKER), marker).map_err(|cause| Error::Io {
+        path: dir.join(OUTPUT_MARKER),
+        cause,
     })
 }
 

@@ -948,5 +948,46 @@ fn messages_say_what_happened() {
         err.contains("checkpoint.json") && err.contains("missing"),
         "{err}"
     );
+    // A chain's folder: its segments are the morphs to resume (it said "config.json: No
+    // such file").
+    let chain = dir.join("chain");
+    std::fs::create_dir_all(chain.join("segment_01")).unwrap();
+    let err = fails(deepmorph().args(["morph", "-q", "--resume"]).arg(&chain));
+    assert!(err.contains("chain") && err.contains("segment_NN"), "{err}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A decompression bomb (a small PNG of a large image of zeros) is refused before decoding
+/// when reading and resizing it would not fit the memory the process may take, here under
+/// `ulimit -v` (issue 43 #6: a 783 kB PNG of 16384² zeros took 7.1 GB, and under
+/// `ulimit -v 3000000` the failed allocation was a panic, exit 101).
+#[test]
+fn a_decompression_bomb_is_refused_within_the_memory_limit() {
+    let dir = scratch("bomb");
+    let bomb = dir.join("zeros.png");
+    image::GrayImage::new(8192, 8192).save(&bomb).unwrap();
+    assert!(std::fs::metadata(&bomb).unwrap().len() < 1 << 20);
+    let output = std::process::Command::new("sh")
+        .arg("-c")
+        .arg("ulimit -v 1572864 && exec \"$0\" \"$@\"")
+        .arg(assert_cmd::cargo::cargo_bin("deepmorph"))
+        .arg("morph")
+        .args([&bomb, &bomb])
+        .args([
+            "--size", "32x32", "-K", "3", "--levels", "2", "--sweeps", "5", "-q",
+        ])
+        .arg("-o")
+        .arg(dir.join("out"))
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("zeros.png")
+            && stderr.contains("8192x8192")
+            && stderr.contains("ulimit -v"),
+        "{stderr}"
+    );
+    nothing_else_in(&dir, &["zeros.png"]);
     std::fs::remove_dir_all(&dir).unwrap();
 }

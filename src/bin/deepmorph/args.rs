@@ -165,6 +165,18 @@ impl RunArgs {
     /// The base settings and inputs: `--config`'s (or `--resume`'s folder's), or the
     /// library's defaults for `base`.
     fn base(&self, base: MorphConfig) -> Result<(MorphConfig, Option<Inputs>)> {
+        if let Some(dir) = &self.resume
+            && !dir.join("config.json").exists()
+            && dir.join("segment_01").is_dir()
+        {
+            // A chain's folder records its segments, each a morph of its own.
+            bail!(
+                "{} holds a chain of morphs, which --resume cannot continue as a whole: \
+                 --resume its interrupted segment's folder (segment_NN) to finish that morph, \
+                 or run the chain again",
+                dir.display()
+            );
+        }
         let recorded = self
             .config
             .clone()
