@@ -1,4 +1,4 @@
-//! The native part of the `deepmorph` Python package: NumPy arrays in, a [`Morph`] out, on the
+//! The native part of the `deepmorph` Python package: NumPy arrays in, a `Morph` out, on the
 //! library's own code paths (`MorphJob::prepare` / `from_images`, `run`, `write`), so a morph
 //! made here is the morph `deepmorph morph` makes, and `Morph.save` writes what it writes.
 //!
