@@ -6,9 +6,10 @@
 use std::path::{Path, PathBuf};
 
 /// Each top-level module of `src/` and its rank: lower ranks are further down.
-const RANKS: [(&str, usize); 11] = [
+const RANKS: [(&str, usize); 12] = [
     ("error", 0),
     ("read", 1),
+    ("host_memory", 1),
     ("fuzz", 0),
     ("backend", 1),
     ("model", 2),
