@@ -60,6 +60,7 @@ pub struct MorphJob {
     /// A fault for the tests (feature `check`): `None` in every other build.
     #[cfg_attr(not(feature = "check"), allow(dead_code))]
     inject_nonfinite: Option<(usize, usize)>,
+    stop_within: Option<(usize, usize, usize)>,
 }
 
 /// What a morph computed.
@@ -224,6 +225,7 @@ impl MorphJob {
             estimate_time: false,
             resume: None,
             inject_nonfinite: None,
+            stop_within: None,
         })
     }
 
@@ -232,6 +234,13 @@ impl MorphJob {
     #[cfg(feature = "check")]
     pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
         self.inject_nonfinite = Some((level, sweep));
+        self
+    }
+
+    /// For tests of an interrupt within a sweep: see [`Multilevel::stop_within`].
+    #[doc(hidden)]
+    pub fn stop_within(mut self, level: usize, sweep: usize, blocks: usize) -> Self {
+        self.stop_within = Some((level, sweep, blocks));
         self
     }
 
@@ -346,6 +355,8 @@ impl MorphJob {
             self.images.1.to_tensor(&grid)?,
         );
         let mut pipe_weights = None;
+        // Seconds of one VGG19 forward at the working size (the deep model).
+        let mut forward_seconds = 0.0;
         let model = match &self.config.deep {
             Some(deep) => {
                 let weights = Vgg19Weights::read(&deep.vgg19)?;
@@ -353,12 +364,10 @@ impl MorphJob {
                     pipe_weights = Some(weights.clone());
                 }
                 let vgg = Vgg19::from_weights(weights, &device)?;
-                FeatureModel::Deep(deep_features(
-                    &vgg,
-                    u_a.clone(),
-                    u_b.clone(),
-                    deep.features,
-                )?)
+                let started = Instant::now();
+                let features = deep_features(&vgg, u_a.clone(), u_b.clone(), deep.features)?;
+                forward_seconds = started.elapsed().as_secs_f64() / 2.0;
+                FeatureModel::Deep(features)
             }
             None => FeatureModel::Rgb,
         };
@@ -382,13 +391,20 @@ impl MorphJob {
                 deformations: folder.deformations,
             })?;
         }
+        if let Some((level, sweep, blocks)) = self.stop_within {
+            driver = driver.stop_within(level, sweep, blocks);
+        }
         #[cfg(feature = "check")]
         if let Some((level, sweep)) = self.inject_nonfinite {
             driver = driver.inject_nonfinite(level, sweep);
         }
         if self.estimate_time
-            && let Some(estimate) = driver.estimate_time(&device, &u_a, &u_b, &model, interrupt)?
+            && let Some(mut estimate) =
+                driver.estimate_time(&device, &u_a, &u_b, &model, interrupt)?
         {
+            // The feature-space path metric after the solve: one forward per frame of the
+            // morph and of the cross-fade, their shared ends once (`feature_path`).
+            estimate.after_solve = forward_seconds * (2 * self.config.solver.steps) as f64;
             observer.estimate(&estimate);
         }
         let mut energy = EnergyLog::default();

@@ -41,12 +41,21 @@ pub fn feature_path(vgg: &Vgg19, grid: &Grid, frames: &[RgbImage]) -> Result<Pat
             ),
         });
     }
-    let tensor = |image: &RgbImage| image.to_tensor(grid);
+    // One network pass per image: the endpoints' taps give the scales and both paths' ends
+    // (the cross-fade's ends are the morph's), 2K passes for K + 1 frames.
+    let taps =
+        |image: &RgbImage| -> Result<[Tensor<4>; 5]> { Ok(vgg.taps(image.to_tensor(grid)?)) };
     let (first, last) = (&frames[0], &frames[frames.len() - 1]);
-    let ends = vgg.taps(Tensor::cat(vec![tensor(first)?, tensor(last)?], 0));
-    let squares: Vec<Tensor<1>> = ends
-        .into_iter()
-        .map(|t| t.powi_scalar(2).mean().reshape([1]))
+    let (first_taps, last_taps) = (taps(first)?, taps(last)?);
+    let squares: Vec<Tensor<1>> = first_taps
+        .iter()
+        .zip(&last_taps)
+        .map(|(a, b)| {
+            // The RMS over both endpoints together: they have the same size.
+            (a.clone().powi_scalar(2).mean() + b.clone().powi_scalar(2).mean())
+                .div_scalar(2.0)
+                .reshape([1])
+        })
         .collect();
     let rms: Vec<f64> = to_host(Tensor::cat(squares, 0))
         .into_iter()
@@ -61,9 +70,18 @@ pub fn feature_path(vgg: &Vgg19, grid: &Grid, frames: &[RgbImage]) -> Result<Pat
             ),
         });
     }
-    let morph = adjacent_distances(vgg, &rms, frames.iter().map(tensor))?;
     let steps = frames.len() - 1;
-    let crossfade = (0..=steps).map(|k| {
+    // The interior frames' taps are computed as the distances walk along the path: one
+    // frame's at a time, never the whole path's.
+    type Taps = Result<[Tensor<4>; 5]>;
+    let path = |interior: Box<dyn Iterator<Item = Taps> + '_>| {
+        let all = std::iter::once(Ok(first_taps.clone()))
+            .chain(interior)
+            .chain(std::iter::once(Ok(last_taps.clone())));
+        adjacent_distances(&rms, all)
+    };
+    let morph = path(Box::new(frames[1..steps].iter().map(taps)))?;
+    let crossfade = path(Box::new((1..steps).map(|k| {
         let t = k as f32 / steps as f32;
         let data = first
             .data()
@@ -71,26 +89,23 @@ pub fn feature_path(vgg: &Vgg19, grid: &Grid, frames: &[RgbImage]) -> Result<Pat
             .zip(last.data())
             .map(|(&a, &b)| f32::from(to_byte((1.0 - t) * a + t * b)) / 255.0)
             .collect();
-        tensor(&RgbImage::new(h, w, data)?)
-    });
-    let crossfade = adjacent_distances(vgg, &rms, crossfade)?;
+        taps(&RgbImage::new(h, w, data)?)
+    })))?;
     Ok(PathSmoothness {
         morph: PathStats::from_adjacent(morph),
         crossfade: PathStats::from_adjacent(crossfade),
     })
 }
 
-/// `d(u_{k−1}, u_k)` along `frames` (each `[1, 3, H, W]`), one network pass per frame and one
-/// read-back per pair.
+/// `d(u_{k−1}, u_k)` along a path given by the taps of its frames, one read-back per pair.
 fn adjacent_distances(
-    vgg: &Vgg19,
     rms: &[f64],
-    frames: impl Iterator<Item = Result<Tensor<4>>>,
+    frames: impl Iterator<Item = Result<[Tensor<4>; 5]>>,
 ) -> Result<Vec<f64>> {
     let mut previous: Option<[Tensor<4>; 5]> = None;
     let mut distances = Vec::new();
-    for frame in frames {
-        let taps = vgg.taps(frame?);
+    for taps in frames {
+        let taps = taps?;
         if let Some(before) = previous {
             let terms: Vec<Tensor<1>> = taps
                 .iter()

@@ -1,6 +1,6 @@
 //! The checkpoint an interrupted morph leaves beside its outputs, so that `--resume` can
-//! continue it exactly: `checkpoint.json` (where it stopped, the Lipschitz estimates, the
-//! tolerance's window, the finished levels) and `checkpoint.f32` (the whole iPALM state of
+//! continue it exactly: `checkpoint.json` (where it stopped, within a sweep too, the
+//! Lipschitz estimates, the tolerance's window, the finished levels) and `checkpoint.f32` (the whole iPALM state of
 //! the level it stopped on: `f`, `f_prev`, `φ`, `φ_prev`, little-endian float32).
 
 use std::path::Path;
@@ -12,7 +12,7 @@ use crate::error::{Error, Result};
 use crate::io::images::write_atomically;
 use crate::model::grid::{Grid, host_values};
 use crate::read::read_bytes;
-use crate::solver::ipalm::LevelState;
+use crate::solver::ipalm::{LevelState, PartialSweep};
 use crate::solver::multilevel::{Morph, Resume};
 use crate::solver::observer::{LevelSummary, Termination};
 
@@ -39,6 +39,10 @@ struct Header {
     phi_streak: Vec<u32>,
     history: Vec<f64>,
     levels: Vec<LevelSummary>,
+    /// The blocks of joint sweep `sweeps + 1` that ran before the interrupt; absent when it
+    /// stopped between sweeps (and in checkpoints written before interrupts within a sweep).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    partial: Option<PartialSweep>,
     /// [`inputs_digest`] of the inputs at the working size the run started from; absent in
     /// checkpoints written before it was recorded (not checked then).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -94,6 +98,7 @@ pub fn save_checkpoint(dir: &Path, morph: &Morph, inputs: impl FnOnce() -> Strin
             .cloned()
             .collect(),
         inputs: Some(inputs()),
+        partial: morph.partial.clone(),
     };
     let mut bytes = Vec::new();
     for part in [&state.f, &state.f_prev, &state.phi, &state.phi_prev] {
@@ -218,9 +223,28 @@ pub fn load_checkpoint(
             )));
         }
     }
+    if let Some(partial) = &header.partial {
+        let joint_blocks = 2 * k - 1;
+        let fits = partial.blocks >= 1
+            && partial.blocks < joint_blocks
+            && partial.deformation.len() <= k
+            && partial.features.len() < k
+            && partial.residual_norm2.len() == k;
+        if !fits {
+            return Err(bad(format!(
+                "its partial sweep ({} blocks, {} deformation and {} feature steps, {} \
+                 residuals) does not fit K = {k} steps",
+                partial.blocks,
+                partial.deformation.len(),
+                partial.features.len(),
+                partial.residual_norm2.len()
+            )));
+        }
+    }
     Ok(Some(Resume {
         level: header.level,
         sweeps: header.sweeps,
+        partial: header.partial,
         state,
         history: header.history,
         levels: header.levels,

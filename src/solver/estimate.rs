@@ -53,6 +53,10 @@ pub struct TimeEstimate {
     pub early_stops: bool,
     /// What the calibration itself took, seconds.
     pub calibration_seconds: f64,
+    /// Predicted seconds of the work after the solve that is not writing files: the deep
+    /// model's feature-space path metric, `2K` VGG19 forwards at the working size, timed by
+    /// the caller on the inputs' forwards (0: none, the RGB model).
+    pub after_solve: f64,
 }
 
 impl TimeEstimate {
@@ -73,9 +77,10 @@ impl TimeEstimate {
         total
     }
 
-    /// Seconds of the whole morph, every level running all its sweeps.
+    /// Seconds of the whole morph, every level running all its sweeps, and what follows the
+    /// solve ([`after_solve`](Self::after_solve)).
     pub fn total(&self) -> f64 {
-        self.remaining_after(0, Phase::Features, 0)
+        self.remaining_after(0, Phase::Features, 0) + self.after_solve
     }
 }
 
@@ -198,6 +203,7 @@ impl Multilevel {
             pre_sweeps: model.pre_sweeps(),
             early_stops: cfg.tolerance > 0.0,
             calibration_seconds: started.elapsed().as_secs_f64(),
+            after_solve: 0.0,
         }))
     }
 }
@@ -214,6 +220,7 @@ mod tests {
             pre_sweeps: 3,
             early_stops: true,
             calibration_seconds: 0.0,
+            after_solve: 0.0,
         }
     }
 
@@ -227,5 +234,11 @@ mod tests {
         assert_eq!(e.remaining_after(1, Phase::Features, 2), 1.0 + 20.0 + 46.0);
         assert_eq!(e.remaining_after(1, Phase::Joint, 0), 20.0 + 46.0);
         assert_eq!(e.remaining_after(2, Phase::Joint, 10), 0.0);
+        let measured = TimeEstimate {
+            after_solve: 7.5,
+            ..e
+        };
+        assert_eq!(measured.total(), total + 7.5);
+        assert_eq!(measured.remaining_after(0, Phase::Joint, 4), total - 4.0);
     }
 }

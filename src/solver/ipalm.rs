@@ -245,7 +245,7 @@ pub enum SweepKind {
 }
 
 /// What the deformation step of one `k` did.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct DeformationStep {
     /// The streak `m` the search started with: its first trial was `0.9^(m+1)` times the
     /// stored `L_φ,k` (SPEC §6, "Where a search starts").
@@ -279,7 +279,7 @@ impl DeformationStep {
 }
 
 /// What the feature step of one `k` did, per block.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct FeatureStep {
     /// The `L_f,k` stored for each block: accepted, or the starting one if it gave up.
     pub lipschitz: Vec<f64>,
@@ -297,7 +297,7 @@ pub struct FeatureStep {
 #[derive(Clone, Debug)]
 pub struct SweepReport {
     /// The anisotropies `a_1..a_K` of step 1, `[1, H, W]` each (empty for a features-only
-    /// sweep).
+    /// sweep; a sweep continued from a [`PartialSweep`] has those of the steps it ran).
     pub anisotropy: Vec<Tensor<3>>,
     /// Deformation steps, `k = 1..K` (empty for a features-only sweep).
     pub deformation: Vec<DeformationStep>,
@@ -360,6 +360,65 @@ impl SweepReport {
             .map(|s| s.dropped.iter().filter(|&&d| d).count())
             .sum()
     }
+}
+
+/// The blocks of a sweep that ran before it was stopped ([`Ipalm::sweep_until`]), and what
+/// they did: with the state they left, enough to finish the sweep later exactly as it would
+/// have run (`--resume` after an interrupt within a sweep, issue 43 #10).
+///
+/// The blocks are counted in the schedule's order: sequential `φ_1, f_1, φ_2, …, f_{K−1},
+/// φ_K` (a features-only sweep: `f_1 … f_{K−1}`), batched all `φ`, the odd `f`, the even
+/// `f`.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PartialSweep {
+    /// Blocks run.
+    pub blocks: usize,
+    /// [`SweepReport::deformation`] so far.
+    pub deformation: Vec<DeformationStep>,
+    /// [`SweepReport::features`] so far (batched: the odd `k` in order).
+    pub features: Vec<FeatureStep>,
+    /// [`SweepReport::residual_norm2`] so far.
+    pub residual_norm2: Vec<Option<f64>>,
+}
+
+impl PartialSweep {
+    /// The first `blocks` blocks of the sweep that `report` records.
+    pub(super) fn of(report: SweepReport, blocks: usize) -> Self {
+        Self {
+            blocks,
+            deformation: report.deformation,
+            features: report.features,
+            residual_norm2: report.residual_norm2,
+        }
+    }
+
+    /// The report to go on with (no anisotropies: those of the blocks run are not kept).
+    fn into_report(self) -> SweepReport {
+        SweepReport {
+            anisotropy: Vec::new(),
+            deformation: self.deformation,
+            features: self.features,
+            residual_norm2: self.residual_norm2,
+        }
+    }
+
+    /// The blocks run, and the report so far; `k` steps if nothing ran yet.
+    pub(super) fn start(from: Option<Self>, k: usize) -> (usize, SweepReport) {
+        match from {
+            Some(partial) => (partial.blocks, partial.into_report()),
+            None => (0, SweepReport::empty(k)),
+        }
+    }
+}
+
+/// How a call of [`Ipalm::sweep_until`] ended.
+#[derive(Clone, Debug)]
+pub enum SweepEnd {
+    /// The sweep ran to its end.
+    Done(SweepReport),
+    /// It was stopped between two blocks; the state holds the blocks run.
+    Stopped(PartialSweep),
 }
 
 /// The iPALM solver on one level.
@@ -581,12 +640,40 @@ impl Ipalm {
         kind: SweepKind,
         carry: &mut SweepCarry,
     ) -> Result<SweepReport> {
+        match self.sweep_until(state, kind, carry, None, &|| false)? {
+            SweepEnd::Done(report) => Ok(report),
+            SweepEnd::Stopped(_) => unreachable!("a sweep that is never asked to stop ends"),
+        }
+    }
+
+    /// [`sweep_carrying`](Self::sweep_carrying), asking `stop` between blocks and stopping
+    /// there when it says so ([`SweepEnd::Stopped`]: the state then holds the blocks run, a
+    /// valid iterate), and going on from `from`, the blocks a stopped sweep of this `state`
+    /// ran: the iterate and the report are then the ones of the sweep run without a stop, bit
+    /// for bit (those anisotropies aside). At least one block runs per call, and after the
+    /// last block the sweep ends whatever `stop` says.
+    ///
+    /// # Errors
+    ///
+    /// As [`sweep`](Self::sweep); `carry` is then empty.
+    pub fn sweep_until(
+        &self,
+        state: &mut LevelState,
+        kind: SweepKind,
+        carry: &mut SweepCarry,
+        from: Option<PartialSweep>,
+        stop: &dyn Fn() -> bool,
+    ) -> Result<SweepEnd> {
         if self.config.schedule == Schedule::Batched {
             let anisotropy = carry.anisotropy.take();
             carry.clear();
-            return self.sweep_batched(state, kind, anisotropy);
+            return self.sweep_batched(state, kind, anisotropy, from, stop);
         }
-        let result = self.sweep_sequential(state, kind, carry);
+        if from.is_some() {
+            // What a sweep carries is for one that starts at its first block.
+            carry.clear();
+        }
+        let result = self.sweep_sequential(state, kind, carry, from, stop);
         if result.is_err() {
             carry.clear();
         }
@@ -599,44 +686,77 @@ impl Ipalm {
         state: &mut LevelState,
         kind: SweepKind,
         carry: &mut SweepCarry,
-    ) -> Result<SweepReport> {
+        from: Option<PartialSweep>,
+        stop: &dyn Fn() -> bool,
+    ) -> Result<SweepEnd> {
         let k_steps = state.steps();
-        let mut report = SweepReport::empty(k_steps);
+        let (run, mut report) = PartialSweep::start(from, k_steps);
         carry.fit(k_steps);
         // What the feature step of k computed that the deformation step of k + 1 needs; for
         // k = 1, what the previous sweep's feature step of 1 left (φ_1 and f_1 unchanged).
         let mut carried: Option<FrameProducts> = carry.take(1);
         // Every a_k at once: step k reads f_k before its feature step changes it, so these are
         // the values a computation at step k would give (a frame's anisotropy does not depend
-        // on the batch it is computed in).
+        // on the batch it is computed in). A continued sweep's f_k of the steps to come are
+        // unchanged too.
         let anisotropy = carry.anisotropy.take();
         let anisotropy = (kind == SweepKind::Joint)
             .then(|| anisotropy.unwrap_or_else(|| self.anisotropies(state)));
+        let mut block = 0;
+        // Whether block `block` is to run now, or the sweep stops before it.
+        let runs = |block: usize| -> Option<bool> {
+            if block < run {
+                Some(false)
+            } else if block > run && stop() {
+                None
+            } else {
+                Some(true)
+            }
+        };
         for k in 1..=k_steps {
             if let Some(anisotropy) = &anisotropy {
-                let a = anisotropy.clone().narrow(0, k - 1, 1);
-                let [(phi_new, step)] =
-                    one_step(self.deformation_steps(state, &[k], a.clone(), carried.take())?);
-                state.apply_deformation(k, phi_new, &step);
-                report.anisotropy.push(a);
-                report.record_deformation(k, step);
+                match runs(block) {
+                    None => return Ok(SweepEnd::Stopped(PartialSweep::of(report, block))),
+                    Some(false) => {}
+                    Some(true) => {
+                        let a = anisotropy.clone().narrow(0, k - 1, 1);
+                        let [(phi_new, step)] = one_step(self.deformation_steps(
+                            state,
+                            &[k],
+                            a.clone(),
+                            carried.take(),
+                        )?);
+                        state.apply_deformation(k, phi_new, &step);
+                        report.anisotropy.push(a);
+                        report.record_deformation(k, step);
+                    }
+                }
+                block += 1;
             }
             if k < k_steps {
-                let FeatureSteps {
-                    frames,
-                    steps,
-                    next,
-                    own,
-                } = self.feature_steps(state, &[k], carry.take(k + 1))?;
-                let ([f_new], [step], [own]) = (one_step(frames), one_step(steps), one_step(own));
-                carried = Some(next);
-                carry.put(k, own);
-                state.l_f[k - 1] = step.lipschitz.clone();
-                state.f_prev[k] = std::mem::replace(&mut state.f[k], f_new);
-                report.record_features(k, step);
+                match runs(block) {
+                    None => return Ok(SweepEnd::Stopped(PartialSweep::of(report, block))),
+                    Some(false) => {}
+                    Some(true) => {
+                        let FeatureSteps {
+                            frames,
+                            steps,
+                            next,
+                            own,
+                        } = self.feature_steps(state, &[k], carry.take(k + 1))?;
+                        let ([f_new], [step], [own]) =
+                            (one_step(frames), one_step(steps), one_step(own));
+                        carried = Some(next);
+                        carry.put(k, own);
+                        state.l_f[k - 1] = step.lipschitz.clone();
+                        state.f_prev[k] = std::mem::replace(&mut state.f[k], f_new);
+                        report.record_features(k, step);
+                    }
+                }
+                block += 1;
             }
         }
-        Ok(report)
+        Ok(SweepEnd::Done(report))
     }
 }
 

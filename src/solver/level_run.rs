@@ -13,7 +13,8 @@ use crate::model::grid::Grid;
 use crate::model::layout::FeatureLayout;
 use crate::model::resample::{Resize, prolongate_deformation};
 use crate::solver::ipalm::{
-    Ipalm, LevelState, SweepCarry, SweepKind, SweepReport, initial_lipschitz,
+    Ipalm, LevelState, PartialSweep, SweepCarry, SweepEnd, SweepKind, SweepReport,
+    initial_lipschitz,
 };
 use crate::solver::observer::Phase;
 
@@ -39,11 +40,15 @@ pub enum LevelStart {
     /// Prolongated from a coarser level or a draft (SPEC §7): the deep model first fits the
     /// features to the prolongated deformations.
     Prolongated,
-    /// The state an interrupted run left after `sweeps` joint sweeps, with `E` after each of
-    /// them (the tolerance's window); `prolongated` if the level was not the first one run.
+    /// The state an interrupted run left after `sweeps` joint sweeps and the blocks
+    /// `partial` of the next one, with `E` after each of them (the tolerance's window);
+    /// `prolongated` if the level was not the first one run.
     Resumed {
-        /// Joint sweeps done (0: stopped during the feature-only sweeps, which run again).
+        /// Joint sweeps done (0 and no `partial`: stopped during the feature-only sweeps,
+        /// which run again).
         sweeps: usize,
+        /// The blocks of joint sweep `sweeps + 1` run before the interrupt.
+        partial: Option<PartialSweep>,
         /// `E` after the joint sweeps `0..=sweeps`.
         history: Vec<f64>,
         /// Whether the level's state came from a coarser one.
@@ -62,6 +67,27 @@ pub struct Swept {
     pub report: Option<SweepReport>,
     /// `E` after it.
     pub energy: SweepEnergy,
+}
+
+/// What one call of [`LevelRun::next_sweep`] came to.
+#[derive(Debug)]
+pub enum Outcome {
+    /// A sweep ran (or a phase's sweep 0 was evaluated).
+    Swept(Swept),
+    /// Sweep `sweep` of `phase` was stopped between two blocks: the state holds the blocks
+    /// it ran, and `partial` (joint sweeps only) what they did, to finish it on `--resume`.
+    /// A features-only sweep is not continued: the deep model's feature-only sweeps run
+    /// again on a resumed level.
+    Stopped {
+        /// The phase it belongs to.
+        phase: Phase,
+        /// The sweep stopped.
+        sweep: usize,
+        /// The blocks it ran, in a joint sweep.
+        partial: Option<PartialSweep>,
+    },
+    /// A value turned non-finite; the state is the last finite iterate.
+    NonFinite(NonFinite),
 }
 
 /// A non-finite value met by [`LevelRun::next_sweep`]: the state is the last finite
@@ -95,6 +121,10 @@ pub struct LevelRun {
     handed_on: Option<SweepEnergy>,
     /// For tests of the non-finite path: after this sweep of either phase `f_1` turns NaN.
     fault_after: Option<usize>,
+    /// The blocks of the next joint sweep that a resumed run had already run.
+    partial: Option<PartialSweep>,
+    /// For tests of an interrupt within a sweep: joint sweep `.0` stops after `.1` blocks.
+    stop_within: Option<(usize, usize)>,
 }
 
 impl LevelRun {
@@ -110,16 +140,18 @@ impl LevelRun {
         pre_sweeps: usize,
         joint_sweeps: usize,
     ) -> Self {
-        let (prolongated, resumed) = match start {
-            LevelStart::Fresh => (false, 0),
-            LevelStart::Prolongated => (true, 0),
+        let (prolongated, resumed, partial) = match start {
+            LevelStart::Fresh => (false, 0, None),
+            LevelStart::Prolongated => (true, 0, None),
             LevelStart::Resumed {
                 sweeps,
+                partial,
                 prolongated,
                 ..
-            } => (*prolongated, *sweeps),
+            } => (*prolongated, *sweeps, partial.clone()),
         };
-        let pre = if prolongated && resumed == 0 {
+        let joint_begun = resumed > 0 || partial.is_some();
+        let pre = if prolongated && !joint_begun {
             pre_sweeps
         } else {
             0
@@ -128,7 +160,7 @@ impl LevelRun {
             (Phase::Features, None, pre)
         } else {
             // A resumed level continues after its last sweep; its sweep 0 was reported.
-            (Phase::Joint, (resumed > 0).then_some(resumed), joint_sweeps)
+            (Phase::Joint, joint_begun.then_some(resumed), joint_sweeps)
         };
         Self {
             grid,
@@ -142,6 +174,8 @@ impl LevelRun {
             joint_sweeps,
             handed_on: None,
             fault_after: None,
+            partial,
+            stop_within: None,
         }
     }
 
@@ -149,6 +183,13 @@ impl LevelRun {
     /// failure would: for tests of the non-finite path only.
     pub(super) fn with_fault_after(mut self, sweep: Option<usize>) -> Self {
         self.fault_after = sweep;
+        self
+    }
+
+    /// Stops joint sweep `sweep` after `blocks` of its blocks as an interrupt would: for
+    /// tests of `--resume` within a sweep only.
+    pub(super) fn with_stop_within(mut self, at: Option<(usize, usize)>) -> Self {
+        self.stop_within = at;
         self
     }
 
@@ -171,13 +212,13 @@ impl LevelRun {
     }
 
     /// Runs the next sweep (or evaluates a phase's sweep 0), `None` once both phases are
-    /// done.
+    /// done; `stop` is asked between the sweep's blocks ([`Ipalm::sweep_until`]).
     ///
     /// # Errors
     ///
-    /// `Ok(Err(NonFinite))` when a value turned non-finite (the state is then the last
+    /// [`Outcome::NonFinite`] when a value turned non-finite (the state is then the last
     /// finite iterate); `Err` for any other failure.
-    pub fn next_sweep(&mut self) -> Result<Option<std::result::Result<Swept, NonFinite>>> {
+    pub fn next_sweep(&mut self, stop: &dyn Fn() -> bool) -> Result<Option<Outcome>> {
         if self.done.is_some_and(|d| d >= self.sweeps) {
             if self.phase == Phase::Joint {
                 return Ok(None);
@@ -193,20 +234,19 @@ impl LevelRun {
                 Some(energy) => Ok(energy),
                 None => self.evaluate(None),
             };
-            return Ok(Some(
-                energy
-                    .map(|energy| Swept {
-                        phase,
-                        sweep: 0,
-                        report: None,
-                        energy,
-                    })
-                    .map_err(|what| NonFinite {
-                        phase,
-                        sweep: 0,
-                        what,
-                    }),
-            ));
+            return Ok(Some(match energy {
+                Ok(energy) => Outcome::Swept(Swept {
+                    phase,
+                    sweep: 0,
+                    report: None,
+                    energy,
+                }),
+                Err(what) => Outcome::NonFinite(NonFinite {
+                    phase,
+                    sweep: 0,
+                    what,
+                }),
+            }));
         };
         let sweep = done + 1;
         self.done = Some(sweep);
@@ -217,14 +257,33 @@ impl LevelRun {
         // The last finite iterate: cheap to keep, these handles are the tensors the sweep
         // moves into `f_prev` and `phi_prev` anyway.
         let before = (self.state.f.clone(), self.state.phi.clone());
-        let outcome = match self
-            .ipalm
-            .sweep_carrying(&mut self.state, kind, &mut self.carry)
-        {
-            Ok(report) => Ok(report),
-            Err(Error::NonFinite { what }) => Err(what),
-            Err(other) => return Err(other),
+        let from = self.partial.take().filter(|_| phase == Phase::Joint);
+        // The test hook: `stop` is asked before each block after the first one run.
+        let asked = std::cell::Cell::new(from.as_ref().map_or(0, |p| p.blocks));
+        let hooked = self
+            .stop_within
+            .filter(|&(at, _)| phase == Phase::Joint && at == sweep)
+            .map(|(_, blocks)| blocks);
+        let stop = || {
+            asked.set(asked.get() + 1);
+            stop() || hooked.is_some_and(|blocks| asked.get() >= blocks)
         };
+        let outcome =
+            match self
+                .ipalm
+                .sweep_until(&mut self.state, kind, &mut self.carry, from, &stop)
+            {
+                Ok(SweepEnd::Done(report)) => Ok(report),
+                Ok(SweepEnd::Stopped(partial)) => {
+                    return Ok(Some(Outcome::Stopped {
+                        phase,
+                        sweep,
+                        partial: (phase == Phase::Joint).then_some(partial),
+                    }));
+                }
+                Err(Error::NonFinite { what }) => Err(what),
+                Err(other) => return Err(other),
+            };
         let faulted = self.fault_after == Some(sweep);
         if faulted {
             self.state.f[1] = self.state.f[1].clone().mul_scalar(f64::NAN);
@@ -240,7 +299,7 @@ impl LevelRun {
                 if phase == Phase::Features {
                     self.handed_on = Some(energy);
                 }
-                Ok(Swept {
+                Outcome::Swept(Swept {
                     phase,
                     sweep,
                     report: Some(report),
@@ -254,7 +313,7 @@ impl LevelRun {
                 self.state.phi_prev = phi.clone();
                 self.state.f = f;
                 self.state.phi = phi;
-                Err(NonFinite { phase, sweep, what })
+                Outcome::NonFinite(NonFinite { phase, sweep, what })
             }
         }))
     }

@@ -18,8 +18,8 @@ use crate::model::layout::FeatureLayout;
 use crate::model::params::EnergyParams;
 use crate::model::resample::Resize;
 use crate::solver::initial::initial_state;
-use crate::solver::ipalm::{Ipalm, IpalmConfig, LevelState, initial_lipschitz};
-use crate::solver::level_run::{LevelRun, LevelStart, NonFinite, prolongate};
+use crate::solver::ipalm::{Ipalm, IpalmConfig, LevelState, PartialSweep, initial_lipschitz};
+use crate::solver::level_run::{LevelRun, LevelStart, NonFinite, Outcome, prolongate};
 use crate::solver::observer::{LevelStop, LevelSummary, Observer, Phase, SweepEvent, Termination};
 
 /// Settings of a multilevel morph (SPEC §7, §9).
@@ -171,6 +171,9 @@ pub struct Morph {
     /// `E` after each joint sweep of the last level, from its sweep 0 (what a resumed run
     /// needs for the tolerance's window).
     pub history: Vec<f64>,
+    /// An interrupted morph's: the blocks of the joint sweep after its last full one that
+    /// ran before the interrupt ([`PartialSweep`]; `state` holds them).
+    pub partial: Option<PartialSweep>,
 }
 
 impl Morph {
@@ -248,14 +251,17 @@ struct LevelContext {
 }
 
 /// Where an interrupted morph stopped, to continue exactly from there (`--resume`): the
-/// whole iPALM state of its last level after its last full sweep.
+/// whole iPALM state of its last level, after its last full sweep and the blocks of the next
+/// one that ran.
 #[derive(Clone, Debug)]
 pub struct Resume {
     /// The level it stopped on.
     pub level: usize,
-    /// Joint sweeps done on that level (0: stopped during the deep model's feature-only
-    /// sweeps, which then run again from the state reached).
+    /// Joint sweeps done on that level (0 and no `partial`: stopped during the deep model's
+    /// feature-only sweeps, which then run again from the state reached).
     pub sweeps: usize,
+    /// The blocks of joint sweep `sweeps + 1` that ran.
+    pub partial: Option<PartialSweep>,
     /// `f`, `f_prev`, `φ`, `φ_prev` and the stored Lipschitz estimates.
     pub state: LevelState,
     /// `E` after the level's joint sweeps `0..=sweeps` (the tolerance's window).
@@ -275,6 +281,9 @@ pub struct Multilevel {
     /// A fault to inject for testing the non-finite path (see
     /// [`inject_nonfinite`](Self::inject_nonfinite)).
     inject_nonfinite: Option<(usize, usize)>,
+    /// A stop within a sweep to make for testing `--resume` (see
+    /// [`stop_within`](Self::stop_within)).
+    stop_within: Option<(usize, usize, usize)>,
     /// SPEC §11's landmarks on the working grid.
     landmarks: Option<Landmarks>,
     /// SPEC §11's global map on the working grid (A's coordinates to B's).
@@ -294,6 +303,7 @@ impl Multilevel {
             draft: None,
             resume: None,
             inject_nonfinite: None,
+            stop_within: None,
             landmarks: None,
             alignment: None,
         })
@@ -386,6 +396,16 @@ impl Multilevel {
     #[cfg(feature = "check")]
     pub fn inject_nonfinite(mut self, level: usize, sweep: usize) -> Self {
         self.inject_nonfinite = Some((level, sweep));
+        self
+    }
+
+    /// For tests of an interrupt within a sweep: joint sweep `sweep` of level `level` stops
+    /// after `blocks` of its blocks ([`Ipalm::sweep_until`]) as if the interrupt had been
+    /// raised then, and the morph ends [`Termination::Interrupted`] with the
+    /// [`Morph::partial`] sweep.
+    #[doc(hidden)]
+    pub fn stop_within(mut self, level: usize, sweep: usize, blocks: usize) -> Self {
+        self.stop_within = Some((level, sweep, blocks));
         self
     }
 
@@ -492,6 +512,7 @@ impl Multilevel {
                 (Some(resume), _) => (
                     LevelStart::Resumed {
                         sweeps: resume.sweeps,
+                        partial: resume.partial.clone(),
                         history: resume.history.clone(),
                         prolongated: level > 0,
                     },
@@ -554,11 +575,18 @@ impl Multilevel {
             .with_fault_after(
                 self.inject_nonfinite
                     .and_then(|(l, sweep)| (l == level).then_some(sweep)),
+            )
+            .with_stop_within(
+                self.stop_within
+                    .and_then(|(l, sweep, blocks)| (l == level).then_some((sweep, blocks))),
             );
             let history = match start {
                 LevelStart::Resumed {
-                    sweeps, history, ..
-                } if sweeps > 0 => history,
+                    sweeps,
+                    partial,
+                    history,
+                    ..
+                } if sweeps > 0 || partial.is_some() => history,
                 _ => Vec::new(),
             };
             let context = LevelContext {
@@ -567,8 +595,12 @@ impl Multilevel {
                 pre_sweeps: model.pre_sweeps(),
                 started,
             };
-            let (summary, history, stopped) =
-                self.execute(&mut run, &context, history, observer, interrupt)?;
+            let Executed {
+                summary,
+                history,
+                stopped,
+                partial,
+            } = self.execute(&mut run, &context, history, observer, interrupt)?;
             summaries.push(summary);
             if stopped.is_some() || level + 1 == sizes.len() {
                 let (grid, state, layout, anisotropy) = run.terminate();
@@ -580,6 +612,7 @@ impl Multilevel {
                     termination: stopped.unwrap_or(Termination::Completed),
                     levels: summaries,
                     history,
+                    partial,
                 });
             }
             coarser = Some(run.into_coarse());
@@ -588,9 +621,9 @@ impl Multilevel {
     }
 
     /// The executor of one level: drives `run` sweep by sweep, owns the tolerance (over
-    /// `history`, `E` after each joint sweep) and the interrupt, and tells `observer` after
-    /// every sweep. Returns the level's summary, its history, and why the morph stops here
-    /// (`None`: the level ran out of sweeps or converged, and the next one may follow).
+    /// `history`, `E` after each joint sweep) and the interrupt (asked between the blocks of
+    /// a sweep too: a signal is acted on within a step, not a sweep of `K` steps), and tells
+    /// `observer` after every sweep.
     ///
     /// # Errors
     ///
@@ -603,17 +636,34 @@ impl Multilevel {
         mut history: Vec<f64>,
         observer: &mut dyn Observer,
         interrupt: &AtomicBool,
-    ) -> Result<(LevelSummary, Vec<f64>, Option<Termination>)> {
+    ) -> Result<Executed> {
         let cfg = &self.config;
         let level = context.level;
         let (height, width) = (run.grid().height(), run.grid().width());
         let mut joint_sweeps = run.joint_sweeps_done();
         let mut level_stop = LevelStop::Sweeps;
         let mut stopped = None;
-        while let Some(outcome) = run.next_sweep()? {
+        let mut partial = None;
+        let interrupted = || interrupt.load(Ordering::Relaxed);
+        while let Some(outcome) = run.next_sweep(&interrupted)? {
             let swept = match outcome {
-                Ok(swept) => swept,
-                Err(NonFinite { phase, sweep, what }) => {
+                Outcome::Swept(swept) => swept,
+                Outcome::Stopped {
+                    phase,
+                    sweep,
+                    partial: blocks,
+                } => {
+                    stopped = Some(Termination::Interrupted {
+                        level,
+                        sweep: match phase {
+                            Phase::Joint => sweep - 1,
+                            Phase::Features => 0,
+                        },
+                    });
+                    partial = blocks;
+                    break;
+                }
+                Outcome::NonFinite(NonFinite { phase, sweep, what }) => {
                     stopped = Some(Termination::NonFinite {
                         level,
                         sweep,
@@ -658,7 +708,7 @@ impl Multilevel {
                 level_stop = LevelStop::Converged;
                 break;
             }
-            if swept.sweep > 0 && interrupt.load(Ordering::Relaxed) {
+            if swept.sweep > 0 && interrupted() {
                 stopped = Some(Termination::Interrupted {
                     level,
                     sweep: if swept.phase == Phase::Joint {
@@ -680,6 +730,24 @@ impl Multilevel {
                 _ => level_stop,
             },
         };
-        Ok((summary, history, stopped))
+        Ok(Executed {
+            summary,
+            history,
+            stopped,
+            partial,
+        })
     }
+}
+
+/// What the executor of a level leaves.
+struct Executed {
+    /// The level's summary.
+    summary: LevelSummary,
+    /// `E` after each of its joint sweeps.
+    history: Vec<f64>,
+    /// Why the morph stops here (`None`: the level ran out of sweeps or converged, and the
+    /// next one may follow).
+    stopped: Option<Termination>,
+    /// The blocks of the joint sweep an interrupt stopped.
+    partial: Option<PartialSweep>,
 }

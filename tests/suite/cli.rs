@@ -1012,64 +1012,54 @@ fn refining_a_draft() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// `--resume`: a morph interrupted after joint sweep 2 of level 1 (of 3) leaves a checkpoint
-/// beside its outputs; resumed, it ends with the deformations, energies and level record of
-/// the uninterrupted run (flex is deterministic here), and the checkpoint is gone.
-#[test]
-fn an_interrupted_morph_resumes_where_it_stopped() {
-    let dir = scratch("resume");
-    let (whole, part) = (dir.join("whole"), dir.join("part"));
-    let args = [
-        "demo",
-        "--size",
-        "32",
-        "-q",
-        "-K",
-        "3",
-        "--levels",
-        "3",
-        "--sweeps",
-        "4",
-        "--tol",
-        "0",
-        "--backend",
-        "flex",
-        "-o",
-    ];
-    deepmorph().args(args).arg(&whole).assert().success();
+/// The flags of the `--resume` tests' morph: 32², K 3, 3 levels × 4 sweeps, on flex.
+const RESUMED: [&str; 15] = [
+    "demo",
+    "--size",
+    "32",
+    "-q",
+    "-K",
+    "3",
+    "--levels",
+    "3",
+    "--sweeps",
+    "4",
+    "--tol",
+    "0",
+    "--backend",
+    "flex",
+    "-o",
+];
+
+/// Runs [`RESUMED`] into `whole`, then into `part` interrupted by the test hook
+/// `DEEPMORPH_INTERRUPT_AT=at` (exit 130, a checkpoint left).
+fn interrupted_and_whole(whole: &Path, part: &Path, at: &str) {
+    deepmorph().args(RESUMED).arg(whole).assert().success();
     deepmorph()
-        .env("DEEPMORPH_INTERRUPT_AT", "1:2")
-        .args(args)
-        .arg(&part)
+        .env("DEEPMORPH_INTERRUPT_AT", at)
+        .args(RESUMED)
+        .arg(part)
         .assert()
         .code(130);
     assert!(part.join("checkpoint.json").is_file() && part.join("checkpoint.f32").is_file());
-    // Settings that change the plan are refused, the checkpoint kept (issue 43 #3).
-    for flags in [&["-K", "5"][..], &["--sweeps", "10"], &["--size", "48x48"]] {
-        let err = fails(
-            deepmorph()
-                .args(["morph", "--resume"])
-                .arg(&part)
-                .args(flags),
-        );
-        assert!(err.contains("--resume continues"), "{flags:?}: {err}");
-        assert!(part.join("checkpoint.json").is_file(), "{flags:?}");
-    }
+}
+
+/// Resumes `part`, checks that its first sweep run is `first` (a line of `-v`), and that it
+/// ends with the deformations, energies and level record of the uninterrupted run `whole`
+/// (flex is deterministic here), its checkpoint gone.
+fn resumes_as_uninterrupted(part: &Path, whole: &Path, first: &str) {
     let resumed_run = deepmorph()
         .args(["morph", "-v", "--resume"])
-        .arg(&part)
+        .arg(part)
         .assert()
         .success();
-    // It continued: no sweep of level 0 or of level 1 up to sweep 2 was run again.
+    // It continued: nothing before `first` was run again.
     let log = String::from_utf8_lossy(&resumed_run.get_output().stderr).to_string();
     let sweeps: Vec<&str> = log.lines().filter(|l| l.contains(" sweep ")).collect();
-    assert!(
-        sweeps[0].starts_with("level 1 (16x16) sweep    3/4"),
-        "{sweeps:?}"
-    );
+    assert!(sweeps[0].starts_with(first), "{sweeps:?}");
     assert!(!part.join("checkpoint.json").exists());
-    let (shape, resumed) = load_deformations(&part).unwrap();
-    let (_, uninterrupted) = load_deformations(&whole).unwrap();
+    let (shape, resumed) = load_deformations(part).unwrap();
+    let (_, uninterrupted) = load_deformations(whole).unwrap();
     assert_eq!(shape, [3, 2, 32, 32]);
     let diff = resumed
         .iter()
@@ -1084,7 +1074,7 @@ fn an_interrupted_morph_resumes_where_it_stopped() {
             .map(|r| (r.level, r.sweep, r.energy))
             .collect::<Vec<_>>()
     };
-    let (a, b) = (log(&part), log(&whole));
+    let (a, b) = (log(part), log(whole));
     assert_eq!(a.len(), b.len());
     for ((la, sa, ea), (lb, sb, eb)) in a.iter().zip(&b) {
         assert_eq!((la, sa), (lb, sb));
@@ -1097,10 +1087,54 @@ fn an_interrupted_morph_resumes_where_it_stopped() {
         serde_json::from_slice(&std::fs::read(d.join("config.json")).unwrap()).unwrap()
     };
     assert_eq!(
-        record(&part)["outcome"]["levels"],
-        record(&whole)["outcome"]["levels"]
+        record(part)["outcome"]["levels"],
+        record(whole)["outcome"]["levels"]
     );
-    assert_eq!(record(&part)["outcome"]["termination"], "completed");
+    assert_eq!(record(part)["outcome"]["termination"], "completed");
+}
+
+/// `--resume`: a morph interrupted after joint sweep 2 of level 1 (of 3) leaves a checkpoint
+/// beside its outputs; resumed, it ends as the uninterrupted run, and the checkpoint is gone.
+#[test]
+fn an_interrupted_morph_resumes_where_it_stopped() {
+    let dir = scratch("resume");
+    let (whole, part) = (dir.join("whole"), dir.join("part"));
+    interrupted_and_whole(&whole, &part, "1:2");
+    // Settings that change the plan are refused, the checkpoint kept (issue 43 #3).
+    for flags in [&["-K", "5"][..], &["--sweeps", "10"], &["--size", "48x48"]] {
+        let err = fails(
+            deepmorph()
+                .args(["morph", "--resume"])
+                .arg(&part)
+                .args(flags),
+        );
+        assert!(err.contains("--resume continues"), "{flags:?}: {err}");
+        assert!(part.join("checkpoint.json").is_file(), "{flags:?}");
+    }
+    resumes_as_uninterrupted(&part, &whole, "level 1 (16x16) sweep    3/4");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// An interrupt within a sweep (issue 43 #10: a signal is acted on after the step running,
+/// not the sweep of `K` steps): stopped after 3 of the 5 blocks of level 1's joint sweep 3,
+/// the checkpoint records those blocks, and the resumed morph finishes that sweep and ends
+/// as the uninterrupted one.
+#[test]
+fn an_interrupt_within_a_sweep_resumes_exactly() {
+    let dir = scratch("resume_within");
+    let (whole, part) = (dir.join("whole"), dir.join("part"));
+    interrupted_and_whole(&whole, &part, "1:2:3");
+    let header: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(part.join("checkpoint.json")).unwrap()).unwrap();
+    assert_eq!(header["sweeps"], 2, "{header}");
+    assert_eq!(header["partial"]["blocks"], 3, "{header}");
+    // φ_1, φ_2 and f_1 ran: two deformation steps and one feature step recorded.
+    assert_eq!(
+        header["partial"]["deformation"].as_array().unwrap().len(),
+        2
+    );
+    assert_eq!(header["partial"]["features"].as_array().unwrap().len(), 1);
+    resumes_as_uninterrupted(&part, &whole, "level 1 (16x16) sweep    3/4");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -760,6 +760,39 @@ fn a_signal_before_the_solve_ends_the_run_at_once() {
         "{:?}",
         sent.elapsed()
     );
+    // During the solve, a signal is acted on after the step running, not after the sweep of
+    // 4000 steps (a minute in this debug build): the checkpoint records the blocks run.
+    let mut child = std::process::Command::new(assert_cmd::cargo::cargo_bin("deepmorph"))
+        .args([
+            "demo",
+            "--size",
+            "32",
+            "-K",
+            "4000",
+            "--levels",
+            "1",
+            "-q",
+            "--backend",
+            "flex",
+            "--force",
+        ])
+        .arg("-o")
+        .arg(&out)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(Duration::from_secs(4));
+    let sent = Instant::now();
+    signal(&child, "TERM");
+    assert_eq!(exit_code(&mut child), Some(130));
+    let took = sent.elapsed();
+    let header: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("checkpoint.json")).unwrap()).unwrap();
+    assert_eq!(header["sweeps"], 0, "{header}");
+    let blocks = header["partial"]["blocks"].as_u64().unwrap_or(0);
+    assert!(blocks > 0 && blocks < 7999, "{header}");
+    // The outputs of 4001 frames are written after the stop.
+    assert!(took < Duration::from_secs(30), "{took:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -889,8 +922,9 @@ fn parameters_that_would_overflow_are_refused() {
 }
 
 /// Messages say what happened (issue 43 #18): a symbolic link as `-o`, a name too long for
-/// the staging folder, a checkpoint whose two files do not belong together, a checkpoint
-/// holding a NaN (named), half a checkpoint (no silent restart from scratch).
+/// the staging folder, a checkpoint whose two files do not belong together or whose partial
+/// sweep does not fit its `K`, a checkpoint holding a NaN (named), half a checkpoint (no
+/// silent restart from scratch).
 #[test]
 fn messages_say_what_happened() {
     let dir = scratch("messages");
@@ -930,6 +964,17 @@ fn messages_say_what_happened() {
     std::fs::write(&header, serde_json::to_vec(&edited).unwrap()).unwrap();
     let err = resume(&[]);
     assert!(err.contains("do not belong together"), "{err}");
+    // A partial sweep of more blocks than a sweep has: named, not run.
+    let mut edited = json.clone();
+    edited["partial"] = serde_json::json!({
+        "blocks": 99, "deformation": [], "features": [], "residual_norm2": [null, null, null]
+    });
+    std::fs::write(&header, serde_json::to_vec(&edited).unwrap()).unwrap();
+    let err = resume(&[]);
+    assert!(
+        err.contains("partial sweep (99 blocks") && err.contains("K = 3"),
+        "{err}"
+    );
     std::fs::write(&header, &header_bytes).unwrap();
     // A NaN in the values: the file and the value named.
     let mut nan = data_bytes.clone();

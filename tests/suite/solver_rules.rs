@@ -810,7 +810,124 @@ fn deformation_searches_shrink_faster_while_they_accept_at_once(backend: Backend
     }
 }
 
+/// An interrupt within a sweep (issue 43 #10): a sweep stopped before any of its blocks and
+/// continued from its [`PartialSweep`] (written to JSON and read back, as the checkpoint
+/// holds it) leaves the iterate, the stored estimates and streaks, and the report of the
+/// sweep run without a stop, bit for bit, in both schedules; and so does the energy after
+/// it, which reuses the report's residuals.
+fn a_sweep_stopped_between_blocks_goes_on_exactly(backend: Backend) {
+    use deepmorph::solver::ipalm::{PartialSweep, Schedule, SweepCarry, SweepEnd};
+    use std::cell::Cell;
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(16, 16, &device, Precision::F32.dtype()).unwrap();
+    let eta = 1e-3;
+    let layout = FeatureLayout::deep(eta, 4).unwrap();
+    let params = EnergyParams::deep();
+    let k = 4;
+    for schedule in [Schedule::Sequential, Schedule::Batched] {
+        let ipalm = Ipalm::new(
+            &grid,
+            params,
+            layout.clone(),
+            IpalmConfig {
+                schedule,
+                ..IpalmConfig::default()
+            },
+        )
+        .unwrap();
+        let mut start = LevelState::initial(
+            &grid,
+            &layout,
+            deep_frame(&grid, eta, 7.0, 6.0),
+            deep_frame(&grid, eta, 8.5, 9.0),
+            k,
+            params.delta,
+        )
+        .unwrap();
+        // A state with inertia and streaks, as a sweep in the middle of a level has.
+        for _ in 0..2 {
+            ipalm.sweep(&mut start, SweepKind::Joint).unwrap();
+        }
+        let mut whole = start.clone();
+        let report = ipalm.sweep(&mut whole, SweepKind::Joint).unwrap();
+        let blocks = match schedule {
+            Schedule::Sequential => 2 * k - 1,
+            Schedule::Batched => 3,
+        };
+        for stop_after in 1..blocks {
+            let what = format!("{backend:?} {schedule:?}, stopped after {stop_after} blocks");
+            let mut state = start.clone();
+            let asked = Cell::new(0);
+            let stop = || {
+                asked.set(asked.get() + 1);
+                asked.get() >= stop_after
+            };
+            let mut carry = SweepCarry::default();
+            let partial = match ipalm
+                .sweep_until(&mut state, SweepKind::Joint, &mut carry, None, &stop)
+                .unwrap()
+            {
+                SweepEnd::Stopped(partial) => partial,
+                SweepEnd::Done(_) => panic!("{what}: not stopped"),
+            };
+            assert_eq!(partial.blocks, stop_after, "{what}");
+            // Stopped means stopped: the blocks after it left their values as they were.
+            let moved = |a: &[Tensor<4>], b: &[Tensor<4>]| {
+                a.iter()
+                    .zip(b)
+                    .filter(|(x, y)| values((*x).clone()) != values((*y).clone()))
+                    .count()
+            };
+            assert!(
+                moved(&state.phi, &whole.phi) + moved(&state.f, &whole.f) > 0,
+                "{what}: nothing left to do"
+            );
+            let json = serde_json::to_string(&partial).unwrap();
+            let read: PartialSweep = serde_json::from_str(&json).unwrap();
+            assert_eq!(read, partial, "{what}: JSON round trip");
+            // A resumed run continues in a new process: nothing carried.
+            let mut carry = SweepCarry::default();
+            let SweepEnd::Done(continued) = ipalm
+                .sweep_until(
+                    &mut state,
+                    SweepKind::Joint,
+                    &mut carry,
+                    Some(read),
+                    &|| false,
+                )
+                .unwrap()
+            else {
+                panic!("{what}: stopped again");
+            };
+            for (x, y) in state.f.iter().zip(&whole.f) {
+                assert_eq!(values(x.clone()), values(y.clone()), "{what}: f");
+            }
+            for (x, y) in state.f_prev.iter().zip(&whole.f_prev) {
+                assert_eq!(values(x.clone()), values(y.clone()), "{what}: f_prev");
+            }
+            for (x, y) in state.phi.iter().zip(&whole.phi) {
+                assert_eq!(values(x.clone()), values(y.clone()), "{what}: φ");
+            }
+            for (x, y) in state.phi_prev.iter().zip(&whole.phi_prev) {
+                assert_eq!(values(x.clone()), values(y.clone()), "{what}: φ_prev");
+            }
+            assert_eq!(state.l_phi, whole.l_phi, "{what}");
+            assert_eq!(state.l_f, whole.l_f, "{what}");
+            assert_eq!(state.phi_streak, whole.phi_streak, "{what}");
+            assert_eq!(continued.deformation, report.deformation, "{what}");
+            assert_eq!(continued.features, report.features, "{what}");
+            assert_eq!(continued.residual_norm2, report.residual_norm2, "{what}");
+            assert_eq!(
+                format!("{:?}", ipalm.energy_after(&state, Some(&continued))),
+                format!("{:?}", ipalm.energy_after(&whole, Some(&report))),
+                "{what}: energy"
+            );
+        }
+    }
+}
+
 on_each_cpu_backend!(
+    a_sweep_stopped_between_blocks_goes_on_exactly,
     deformation_searches_shrink_faster_while_they_accept_at_once,
     a_carried_sweep_equals_a_fresh_one,
     converged_features_do_not_freeze,

@@ -179,10 +179,11 @@ fn morph(config: MorphConfig, inputs: Inputs, args: &RunArgs) -> Result<i32> {
 }
 
 /// Turns SIGINT, SIGTERM and SIGHUP (ctrlc's `termination` feature) into a raised flag: the
-/// solver stops after the current sweep and the outputs are written. A signal before the
-/// solve began ([`SOLVING`]), or a second signal, aborts at once, removing `staging` and
-/// leaving the previous output as it was, unless the outputs are being written (a second or
-/// so): those are finished first, so the staging folder is never removed under the writer.
+/// solver stops after the current step (one block of a sweep) and the outputs are written,
+/// with a checkpoint for `--resume`. A signal before the solve began ([`SOLVING`]), or a
+/// second signal, aborts at once, removing `staging` and leaving the previous output as it
+/// was, unless the outputs are being written (a second or so): those are finished first, so
+/// the staging folder is never removed under the writer.
 fn stop_on_signals(staging: PathBuf) -> Result<Arc<AtomicBool>> {
     let interrupt = Arc::new(AtomicBool::new(false));
     let flag = Arc::clone(&interrupt);
@@ -191,7 +192,7 @@ fn stop_on_signals(staging: PathBuf) -> Result<Arc<AtomicBool>> {
         let solving = SOLVING.load(Ordering::SeqCst);
         if !again && solving {
             eprintln!(
-                "\ninterrupted: stopping after this sweep and writing the outputs (signal again to abort)"
+                "\ninterrupted: stopping after this step and writing the outputs (signal again to abort)"
             );
             return;
         }

@@ -100,10 +100,16 @@ impl Observer for Progress {
     fn estimate(&mut self, estimate: &TimeEstimate) {
         if self.verbosity != Verbosity::Quiet {
             let total = duration(estimate.total());
-            let timed = format!(
+            let mut timed = format!(
                 "sweeps timed on this machine in {:.1} s",
                 estimate.calibration_seconds
             );
+            if estimate.after_solve > 0.0 {
+                timed.push_str(&format!(
+                    "; {} of it measures the path in VGG19 feature space after the solve",
+                    duration(estimate.after_solve)
+                ));
+            }
             if estimate.early_stops {
                 eprintln!(
                     "estimated time: about {total} if every level runs all its {} sweeps (the \
