@@ -733,59 +733,15 @@ fn a_signal_before_the_solve_ends_the_run_at_once() {
     }
     // The calibration of a path of thousands of steps is short: a signal right after it
     // started is acted on within seconds (it took 38 s at K = 4000 before).
-    let mut child = std::process::Command::new(assert_cmd::cargo::cargo_bin("deepmorph"))
-        .args([
-            "demo",
-            "--size",
-            "32",
-            "-K",
-            "4000",
-            "--levels",
-            "2",
-            "--backend",
-            "flex",
-        ])
-        .arg("-o")
-        .arg(&out)
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    std::thread::sleep(Duration::from_millis(300));
-    let sent = Instant::now();
-    signal(&child, "TERM");
-    assert_eq!(exit_code(&mut child), Some(130));
+    let took = terminated_after(thousand_step_demo(&out, &["--levels", "2"]), 300);
     // Debug build: the calibration's two 16-step sweeps, or one sweep of the solve.
-    assert!(
-        sent.elapsed() < Duration::from_secs(60),
-        "{:?}",
-        sent.elapsed()
-    );
+    assert!(took < Duration::from_secs(60), "{took:?}");
     // During the solve, a signal is acted on after the step running, not after the sweep of
     // 4000 steps (a minute in this debug build): the checkpoint records the blocks run.
-    let mut child = std::process::Command::new(assert_cmd::cargo::cargo_bin("deepmorph"))
-        .args([
-            "demo",
-            "--size",
-            "32",
-            "-K",
-            "4000",
-            "--levels",
-            "1",
-            "-q",
-            "--backend",
-            "flex",
-            "--force",
-        ])
-        .arg("-o")
-        .arg(&out)
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    std::thread::sleep(Duration::from_secs(4));
-    let sent = Instant::now();
-    signal(&child, "TERM");
-    assert_eq!(exit_code(&mut child), Some(130));
-    let took = sent.elapsed();
+    let took = terminated_after(
+        thousand_step_demo(&out, &["--levels", "1", "-q", "--force"]),
+        4000,
+    );
     let header: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("checkpoint.json")).unwrap()).unwrap();
     assert_eq!(header["sweeps"], 0, "{header}");
@@ -794,6 +750,28 @@ fn a_signal_before_the_solve_ends_the_run_at_once() {
     // The outputs of 4001 frames are written after the stop.
     assert!(took < Duration::from_secs(30), "{took:?}");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A demo morph of 32², `K` = 4000 on flex into `out`, with `extra` flags, started.
+fn thousand_step_demo(out: &Path, extra: &[&str]) -> Child {
+    std::process::Command::new(assert_cmd::cargo::cargo_bin("deepmorph"))
+        .args(["demo", "--size", "32", "-K", "4000", "--backend", "flex"])
+        .args(extra)
+        .arg("-o")
+        .arg(out)
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Sends SIGTERM to `child` `millis` ms after it started, checks that it exits 130, and
+/// returns how long that took after the signal.
+fn terminated_after(mut child: Child, millis: u64) -> Duration {
+    std::thread::sleep(Duration::from_millis(millis));
+    let sent = Instant::now();
+    signal(&child, "TERM");
+    assert_eq!(exit_code(&mut child), Some(130));
+    sent.elapsed()
 }
 
 /// Devices are refused by their kind before a byte is read, and a regular file larger than
