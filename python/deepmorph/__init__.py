@@ -90,7 +90,7 @@ def morph(
 
     A NaN or infinity in the optimisation ends the morph early with the last finite path
     and a ``RuntimeWarning`` (``.termination`` says where). The solve releases the GIL.
-    Ctrl-C stops it after the current sweep and raises :class:`Interrupted` (a
+    Ctrl-C stops it after the current step and raises :class:`Interrupted` (a
     ``KeyboardInterrupt``) whose ``.morph`` holds the path reached.
     Bad settings and inputs raise ``ValueError``, missing files ``FileNotFoundError``, a
     morph too large for the memory ``MemoryError``, with the program's messages.

@@ -14,7 +14,7 @@ ImageLike = Union[PathLike, npt.NDArray[np.uint8], npt.NDArray[np.floating[Any]]
 PointsLike = Union[PathLike, Sequence[Sequence[float]], npt.NDArray[np.floating[Any]]]
 
 class Interrupted(KeyboardInterrupt):
-    """Ctrl-C stopped a morph after its current sweep; ``morph`` holds the path reached."""
+    """Ctrl-C stopped a morph after its current step; ``morph`` holds the path reached."""
 
     morph: "Morph"
 

@@ -48,7 +48,7 @@ create_exception!(
     _native,
     Interrupted,
     PyKeyboardInterrupt,
-    "Ctrl-C stopped a morph after its current sweep; `.morph` holds the path reached (a \
+    "Ctrl-C stopped a morph after its current step; `.morph` holds the path reached (a \
      `Morph`, which `.save` writes like any other)."
 );
 
@@ -392,7 +392,7 @@ fn build_config(
 }
 
 /// The first exception of a morph (Ctrl-C, or the progress callback's): it stops the
-/// morph after the current sweep, through the interrupt flag, and is raised when the solve
+/// morph after the current step, through the interrupt flag, and is raised when the solve
 /// returns.
 struct Stop<'a> {
     interrupt: &'a AtomicBool,
@@ -808,7 +808,7 @@ fn morph(
         None => Ok(morph.into_any()),
         Some(error) if error.is_instance_of::<PyKeyboardInterrupt>(py) => {
             let interrupted = Interrupted::new_err(
-                "interrupted (Ctrl-C): the morph stopped after its current sweep; the path \
+                "interrupted (Ctrl-C): the morph stopped after its current step; the path \
                  reached is in this exception's .morph",
             );
             interrupted.value(py).setattr("morph", morph)?;

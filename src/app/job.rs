@@ -337,7 +337,7 @@ impl MorphJob {
         OutputFolder::begin(dir, &self.inputs.files(), is_morph_output, force)
     }
 
-    /// Runs the morph, reporting every sweep to `observer`; stops after the current sweep
+    /// Runs the morph, reporting every sweep to `observer`; stops after the current step
     /// when `interrupt` is raised. A NaN in the optimisation is not an error: the result
     /// then holds the last finite iterate and says so in its termination.
     ///

@@ -245,7 +245,7 @@ fn bad_inputs_fail_with_a_clear_message() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// Ctrl-C stops after the current sweep and still writes every output (exit status 130).
+/// Ctrl-C stops after the current step and still writes every output (exit status 130).
 #[test]
 fn interrupt_writes_outputs() {
     let dir = scratch("interrupt");
