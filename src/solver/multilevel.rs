@@ -423,7 +423,8 @@ impl Multilevel {
     }
 
     /// Morphs `u_a` into `u_b` (RGB in `[0, 1]`, `[1, 3, H, W]`, on `device`, which must have
-    /// autodiff enabled). Stops after the current step (a block of a sweep) when `interrupt` is raised.
+    /// autodiff enabled). Stops after the current step (a block of a sweep) when `interrupt`
+    /// is raised.
     ///
     /// # Errors
     ///
