@@ -21,7 +21,9 @@
 use burn::tensor::Tensor;
 
 use crate::error::Result;
-use crate::solver::ipalm::{FeatureStep, Ipalm, LevelState, PartialSweep, SweepEnd, SweepKind};
+use crate::solver::ipalm::{
+    Block, FeatureStep, Ipalm, LevelState, PartialSweep, SweepEnd, SweepKind,
+};
 use crate::solver::steps::FeatureSteps;
 
 impl Ipalm {
@@ -37,42 +39,36 @@ impl Ipalm {
         stop: &dyn Fn() -> bool,
     ) -> Result<SweepEnd> {
         let k = state.steps();
-        let (run, mut report) = PartialSweep::start(from, k);
-        let mut block = 0;
-        if kind == SweepKind::Joint {
-            if block >= run {
-                let a = anisotropy.unwrap_or_else(|| self.anisotropies(state));
-                let all: Vec<usize> = (1..=k).collect();
-                let steps = self.deformation_steps(state, &all, a.clone(), None)?;
-                for (i, (phi, step)) in steps.into_iter().enumerate() {
-                    state.apply_deformation(i + 1, phi, &step);
-                    report.record_deformation(i + 1, step);
-                }
-                report.anisotropy = (0..k).map(|i| a.clone().narrow(0, i, 1)).collect();
+        let (mut cursor, mut report) = PartialSweep::start(from, k, stop);
+        if kind == SweepKind::Joint && cursor.next(false) == Block::Run {
+            let a = anisotropy.unwrap_or_else(|| self.anisotropies(state));
+            let all: Vec<usize> = (1..=k).collect();
+            let steps = self.deformation_steps(state, &all, a.clone(), None)?;
+            for (i, (phi, step)) in steps.into_iter().enumerate() {
+                state.apply_deformation(i + 1, phi, &step);
+                report.record_deformation(i + 1, step);
             }
-            block += 1;
+            report.anisotropy = (0..k).map(|i| a.clone().narrow(0, i, 1)).collect();
         }
         let mut features: Vec<Option<FeatureStep>> = vec![None; k.saturating_sub(1)];
         // A continued sweep's: those of the passes run, in `k` order.
         let mut recorded = std::mem::take(&mut report.features).into_iter();
         for parity in [1, 0] {
             let ks: Vec<usize> = (1..k).filter(|j| j % 2 == parity).collect();
-            if block < run {
-                for &j in &ks {
-                    features[j - 1] = recorded.next();
+            match cursor.next(ks.is_empty()) {
+                Block::Ran => {
+                    for &j in &ks {
+                        features[j - 1] = recorded.next();
+                    }
+                    continue;
                 }
-                block += 1;
-                continue;
+                Block::Stop { blocks } => {
+                    report.features = features.into_iter().flatten().collect();
+                    return Ok(SweepEnd::Stopped(PartialSweep::of(report, blocks)));
+                }
+                Block::Run if ks.is_empty() => continue,
+                Block::Run => {}
             }
-            if ks.is_empty() {
-                block += 1;
-                continue;
-            }
-            if block > run && stop() {
-                report.features = features.into_iter().flatten().collect();
-                return Ok(SweepEnd::Stopped(PartialSweep::of(report, block)));
-            }
-            block += 1;
             let FeatureSteps { frames, steps, .. } = self.feature_steps(state, &ks, None)?;
             // Recorded in the order the passes run: every `D_k` next to an even frame is final
             // only after the even pass, `D_1` and (for even `K`) `D_K` after the odd one.

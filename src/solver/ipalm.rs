@@ -403,11 +403,61 @@ impl PartialSweep {
         }
     }
 
-    /// The blocks run, and the report so far; `k` steps if nothing ran yet.
-    pub(super) fn start(from: Option<Self>, k: usize) -> (usize, SweepReport) {
-        match from {
+    /// The cursor over the blocks of a sweep going on from `from` (from its first block when
+    /// `None`), asking `stop` as [`Ipalm::sweep_until`] says, and the report so far; `k` steps
+    /// if nothing ran yet.
+    pub(super) fn start<'s>(
+        from: Option<Self>,
+        k: usize,
+        stop: &'s dyn Fn() -> bool,
+    ) -> (Blocks<'s>, SweepReport) {
+        let (first, report) = match from {
             Some(partial) => (partial.blocks, partial.into_report()),
             None => (0, SweepReport::empty(k)),
+        };
+        let blocks = Blocks {
+            next: 0,
+            first,
+            stop,
+        };
+        (blocks, report)
+    }
+}
+
+/// The blocks of one call of [`Ipalm::sweep_until`], taken in the schedule's order: the rule
+/// of which ran in an earlier call, which runs now, and before which the sweep stops, kept in
+/// one place for both schedules.
+pub(super) struct Blocks<'s> {
+    /// The index of the block [`next`](Self::next) hands out.
+    next: usize,
+    /// The first block this call runs: the blocks before it ran in the call that stopped.
+    first: usize,
+    stop: &'s dyn Fn() -> bool,
+}
+
+/// What to do with a sweep's next block.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) enum Block {
+    /// It ran before this call: take its results from the report.
+    Ran,
+    /// Run it.
+    Run,
+    /// Stop the sweep before it; `blocks` ran ([`PartialSweep::blocks`]).
+    Stop { blocks: usize },
+}
+
+impl Blocks<'_> {
+    /// The next block: `stop` is asked before every block after the first this call runs,
+    /// except one with no work (`empty`, a pass over no frame), which never stops a sweep.
+    pub(super) fn next(&mut self, empty: bool) -> Block {
+        let block = self.next;
+        self.next += 1;
+        if block < self.first {
+            Block::Ran
+        } else if block > self.first && !empty && (self.stop)() {
+            Block::Stop { blocks: block }
+        } else {
+            Block::Run
         }
     }
 }
@@ -690,7 +740,7 @@ impl Ipalm {
         stop: &dyn Fn() -> bool,
     ) -> Result<SweepEnd> {
         let k_steps = state.steps();
-        let (run, mut report) = PartialSweep::start(from, k_steps);
+        let (mut cursor, mut report) = PartialSweep::start(from, k_steps, stop);
         carry.fit(k_steps);
         // What the feature step of k computed that the deformation step of k + 1 needs; for
         // k = 1, what the previous sweep's feature step of 1 left (φ_1 and f_1 unchanged).
@@ -702,23 +752,14 @@ impl Ipalm {
         let anisotropy = carry.anisotropy.take();
         let anisotropy = (kind == SweepKind::Joint)
             .then(|| anisotropy.unwrap_or_else(|| self.anisotropies(state)));
-        let mut block = 0;
-        // Whether block `block` is to run now, or the sweep stops before it.
-        let runs = |block: usize| -> Option<bool> {
-            if block < run {
-                Some(false)
-            } else if block > run && stop() {
-                None
-            } else {
-                Some(true)
-            }
-        };
         for k in 1..=k_steps {
             if let Some(anisotropy) = &anisotropy {
-                match runs(block) {
-                    None => return Ok(SweepEnd::Stopped(PartialSweep::of(report, block))),
-                    Some(false) => {}
-                    Some(true) => {
+                match cursor.next(false) {
+                    Block::Stop { blocks } => {
+                        return Ok(SweepEnd::Stopped(PartialSweep::of(report, blocks)));
+                    }
+                    Block::Ran => {}
+                    Block::Run => {
                         let a = anisotropy.clone().narrow(0, k - 1, 1);
                         let [(phi_new, step)] = one_step(self.deformation_steps(
                             state,
@@ -731,13 +772,14 @@ impl Ipalm {
                         report.record_deformation(k, step);
                     }
                 }
-                block += 1;
             }
             if k < k_steps {
-                match runs(block) {
-                    None => return Ok(SweepEnd::Stopped(PartialSweep::of(report, block))),
-                    Some(false) => {}
-                    Some(true) => {
+                match cursor.next(false) {
+                    Block::Stop { blocks } => {
+                        return Ok(SweepEnd::Stopped(PartialSweep::of(report, blocks)));
+                    }
+                    Block::Ran => {}
+                    Block::Run => {
                         let FeatureSteps {
                             frames,
                             steps,
@@ -753,7 +795,6 @@ impl Ipalm {
                         report.record_features(k, step);
                     }
                 }
-                block += 1;
             }
         }
         Ok(SweepEnd::Done(report))
@@ -807,5 +848,42 @@ impl SweepCarry {
     /// Holds `products` for `k`.
     fn put(&mut self, k: usize, products: Option<FrameProducts>) {
         self.products[k] = products;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::cell::Cell;
+
+    use super::{Block, PartialSweep};
+
+    #[test]
+    fn blocks_skip_what_ran_and_ask_to_stop_only_after_the_first_they_run() {
+        let asked = Cell::new(0);
+        let stop = || {
+            asked.set(asked.get() + 1);
+            true
+        };
+        let ran = PartialSweep {
+            blocks: 2,
+            deformation: Vec::new(),
+            features: Vec::new(),
+            residual_norm2: Vec::new(),
+        };
+        let (mut cursor, _) = PartialSweep::start(Some(ran), 3, &stop);
+        assert_eq!(cursor.next(false), Block::Ran);
+        assert_eq!(cursor.next(false), Block::Ran);
+        // At least one block runs per call, whatever `stop` says.
+        assert_eq!(cursor.next(false), Block::Run);
+        assert_eq!(asked.get(), 0);
+        // A pass over no frame never stops a sweep.
+        assert_eq!(cursor.next(true), Block::Run);
+        assert_eq!(asked.get(), 0);
+        assert_eq!(cursor.next(false), Block::Stop { blocks: 4 });
+        assert_eq!(asked.get(), 1);
+
+        let (mut fresh, _) = PartialSweep::start(None, 3, &stop);
+        assert_eq!(fresh.next(false), Block::Run);
+        assert_eq!(fresh.next(false), Block::Stop { blocks: 1 });
     }
 }
