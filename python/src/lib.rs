@@ -531,6 +531,8 @@ fn energy_columns<'py>(py: Python<'py>, result: &MorphResult) -> PyResult<Bound<
         ("restarts", ints(&|r| r.restarts)),
         ("drops_phi", ints(&|r| r.drops_phi)),
         ("drops_f", ints(&|r| r.drops_f)),
+        ("trials_phi", ints(&|r| r.trials_phi)),
+        ("trials_f", ints(&|r| r.trials_f)),
     ] {
         columns.set_item(name, values.into_pyarray(py))?;
     }

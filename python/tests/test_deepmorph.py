@@ -87,6 +87,8 @@ def test_shapes_dtypes_and_endpoints(quick, pair):
     assert n == 2 * (6 + 1)  # sweep 0 and 6 sweeps on each level
     assert all(len(v) == n for v in energy.values())
     assert energy["E"].dtype == np.float64 and np.all(np.isfinite(energy["E"]))
+    # Every joint sweep's K = 3 deformation searches try at least once each.
+    assert np.all(energy["trials_phi"][energy["sweep"] > 0] >= 3)
     assert quick.config["inputs"] == {"kind": "arrays", "a": [32, 32], "b": [32, 32]}
     assert quick.config["config"]["solver"]["steps"] == 3
 

@@ -609,6 +609,8 @@ mod tests {
             drops_f: 0,
             stop: None,
             landmarks: 0.0,
+            trials_phi: 0,
+            trials_f: 0,
         };
         let records = [
             record(0, 0, 9.0, 4.0, 5.0),

@@ -7,6 +7,7 @@ use std::path::Path;
 
 use crate::error::{Error, Result};
 use crate::read::read_bytes;
+use crate::solver::ipalm::SweepReport;
 use crate::solver::observer::{LevelStop, Observer, Phase, SweepEvent};
 
 /// One line of `energy.csv`.
@@ -47,6 +48,12 @@ pub struct EnergyRecord {
     /// SPEC §11's landmark term `E_lm` (the CSV's `E_lm`; 0 without landmarks and in logs
     /// of earlier versions).
     pub landmarks: f64,
+    /// Backtracking trials of the sweep's deformation searches (the CSV's `trials_phi`; `K`
+    /// where every search accepted its first; 0 for sweep 0 and in logs of earlier
+    /// versions): what the accelerating shrink of SPEC §6 trades against smaller steps.
+    pub trials_phi: usize,
+    /// Backtracking trials of the sweep's feature searches, every block (`trials_f`).
+    pub trials_f: usize,
 }
 
 /// Collects an [`EnergyRecord`] per sweep.
@@ -73,7 +80,7 @@ impl EnergyLog {
     /// The log as CSV, with a header line. Lipschitz constants are `;`-separated lists.
     pub fn to_csv(&self) -> String {
         let mut out = String::from(
-            "level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds,restarts,drops_phi,drops_f,stop,m_phi,E_lm\n",
+            "level,height,width,sweep,E,sum_R,sum_D,L_phi,L_f,seconds,restarts,drops_phi,drops_f,stop,m_phi,E_lm,trials_phi,trials_f\n",
         );
         let list = |v: &[f64]| {
             v.iter()
@@ -84,7 +91,7 @@ impl EnergyLog {
         for r in &self.records {
             let _ = writeln!(
                 out,
-                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3},{},{},{},{},{},{:.9e}",
+                "{},{},{},{},{:.9e},{:.9e},{:.9e},{},{},{:.3},{},{},{},{},{},{:.9e},{},{}",
                 r.level,
                 r.height,
                 r.width,
@@ -104,15 +111,17 @@ impl EnergyLog {
                     .map(u32::to_string)
                     .collect::<Vec<_>>()
                     .join(";"),
-                r.landmarks
+                r.landmarks,
+                r.trials_phi,
+                r.trials_f
             );
         }
         out
     }
 
-    /// Parses what [`to_csv`](Self::to_csv) wrote (also the 10-, 14- and 15-column files of
-    /// earlier versions, without the restart and drop counts and the stop reasons, without
-    /// the streaks, or without `E_lm`).
+    /// Parses what [`to_csv`](Self::to_csv) wrote (also the 10-, 14-, 15- and 16-column files
+    /// of earlier versions, without the restart and drop counts and the stop reasons, without
+    /// the streaks, without `E_lm`, or without the trial counts).
     ///
     /// # Errors
     ///
@@ -134,7 +143,7 @@ impl EnergyLog {
             .map(|(i, line)| {
                 let bad = || format!("line {}: cannot parse `{line}`", i + 2);
                 let cols: Vec<&str> = line.split(',').collect();
-                if ![10, 14, 15, 16].contains(&cols.len()) {
+                if ![10, 14, 15, 16, 18].contains(&cols.len()) {
                     return Err(bad());
                 }
                 let int = |c: &str| c.parse::<usize>().map_err(|_| bad());
@@ -171,6 +180,8 @@ impl EnergyLog {
                         })
                         .map_err(|_| bad())?,
                     landmarks: cols.get(15).map_or(Ok(0.0), |c| num(c))?,
+                    trials_phi: cols.get(16).map_or(Ok(0), |c| int(c))?,
+                    trials_f: cols.get(17).map_or(Ok(0), |c| int(c))?,
                 })
             })
             .collect::<std::result::Result<_, _>>()?;
@@ -213,6 +224,8 @@ impl Observer for EnergyLog {
             drops_f: e.report.map_or(0, |r| r.feature_drops()),
             stop: e.stop,
             landmarks: e.landmarks,
+            trials_phi: e.report.map_or(0, SweepReport::deformation_trials),
+            trials_f: e.report.map_or(0, SweepReport::feature_trials),
         });
     }
 }

@@ -353,6 +353,17 @@ impl SweepReport {
         self.deformation.iter().filter(|s| s.dropped).count()
     }
 
+    /// Trials of the sweep's deformation searches, both searches of a restarted step
+    /// counted (`K` where every search accepted its first trial).
+    pub fn deformation_trials(&self) -> usize {
+        self.deformation.iter().map(|s| s.trials).sum()
+    }
+
+    /// Trials of the sweep's feature searches, over every block of every `k`.
+    pub fn feature_trials(&self) -> usize {
+        self.features.iter().flat_map(|s| &s.trials).sum()
+    }
+
     /// Feature blocks whose search gave up.
     pub fn feature_drops(&self) -> usize {
         self.features

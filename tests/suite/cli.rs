@@ -360,7 +360,7 @@ fn restarts_and_drops_are_logged() {
         csv.lines()
             .next()
             .unwrap()
-            .ends_with(",restarts,drops_phi,drops_f,stop,m_phi,E_lm"),
+            .ends_with(",restarts,drops_phi,drops_f,stop,m_phi,E_lm,trials_phi,trials_f"),
         "{csv}"
     );
     let log = EnergyLog::from_csv(&csv).unwrap();
@@ -384,6 +384,13 @@ fn restarts_and_drops_are_logged() {
         assert_eq!(count(line, "restarts "), record.restarts, "{line}");
         assert_eq!(count(line, "dropped phi "), record.drops_phi, "{line}");
         assert_eq!(count(line, " f "), record.drops_f, "{line}");
+        assert_eq!(count(line, "phi trials "), record.trials_phi, "{line}");
+        // Every search tries at least once: K = 3 deformation searches, and K − 1 = 2 feature
+        // steps of the RGB model's one block each.
+        if record.sweep > 0 {
+            assert!(record.trials_phi >= 3, "{record:?}");
+            assert!(record.trials_f >= 2, "{record:?}");
+        }
         // Each joint sweep logs the streak each of the K = 3 deformation searches started with.
         let streaks = if record.sweep == 0 { 0 } else { 3 };
         assert_eq!(record.streak_phi.len(), streaks, "{record:?}");

@@ -146,7 +146,7 @@ impl Observer for Progress {
         if self.verbosity == Verbosity::Verbose {
             let (trials, restarts, drops_phi, drops_f) = e.report.map_or((0, 0, 0, 0), |r| {
                 (
-                    r.deformation.iter().map(|s| s.trials).sum::<usize>(),
+                    r.deformation_trials(),
                     r.restarts(),
                     r.deformation_drops(),
                     r.feature_drops(),

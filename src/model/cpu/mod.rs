@@ -11,6 +11,17 @@ use rayon::prelude::*;
 
 pub(crate) mod elementary;
 
+/// [`Real::flush_tiny`]'s threshold for float32: `2⁻¹⁰⁰ ≈ 7.9e-31`, far above the subnormal
+/// range (below `1.2e-38`) so that a flushed value times a spline weight (down to about
+/// `1e-7` in practice) does not land there either, and 24 orders of magnitude or more below
+/// the data (features of RMS 0.1, colours scaled by `η = 1e-6`): below the float32
+/// rounding of any sum that holds a value of the data's size.
+pub const FLUSH_BELOW_F32: f32 = 7.888_609e-31;
+
+/// [`Real::flush_tiny`]'s threshold for float64: about `2⁻⁹⁰⁰`, likewise far above the float64
+/// subnormals (below `2.2e-308`) and far below anything the data holds.
+pub const FLUSH_BELOW_F64: f64 = 1.183_052_186_166_5e-271;
+
 /// The element types the kernels run in.
 pub trait Real:
     Copy
@@ -36,6 +47,14 @@ pub trait Real:
     fn truncate(self) -> i32;
     /// From an integer (exact for the grid's indices).
     fn from_i32(i: i32) -> Self;
+    /// 0 where `|self|` is below [`FLUSH_BELOW_F32`] (float32) or [`FLUSH_BELOW_F64`]
+    /// (float64), else `self` (NaN kept). The prefilter's recurrences decay by `2 − √3` a
+    /// sample into a run of zeros (ReLU features have long ones) and reach subnormal
+    /// numbers, which on some CPUs cost a microcode assist per operation: every later sum
+    /// that reads them (the 16-neighbour sums of each warp) ran 18× slower per value, a
+    /// 112² deep sweep 5× (docs/benchmarks.md, "Subnormal coefficients"). A vector compare
+    /// and mask per value.
+    fn flush_tiny(self) -> Self;
     /// `eˣ`.
     fn exp(self) -> Self;
     /// The natural logarithm.
@@ -106,6 +125,14 @@ impl Real for f32 {
     }
     fn from_i32(i: i32) -> Self {
         i as f32
+    }
+    #[inline(always)]
+    fn flush_tiny(self) -> Self {
+        if self.abs() < FLUSH_BELOW_F32 {
+            0.0
+        } else {
+            self
+        }
     }
     fn exp(self) -> Self {
         f32::exp(self)
@@ -201,6 +228,14 @@ impl Real for f64 {
     }
     fn from_i32(i: i32) -> Self {
         f64::from(i)
+    }
+    #[inline(always)]
+    fn flush_tiny(self) -> Self {
+        if self.abs() < FLUSH_BELOW_F64 {
+            0.0
+        } else {
+            self
+        }
     }
     fn exp(self) -> Self {
         f64::exp(self)

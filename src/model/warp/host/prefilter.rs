@@ -86,28 +86,31 @@ pub(super) fn solve_lines<T: SplineReal>(
     let lines = group.len() / n;
     debug_assert_eq!(group.len(), lines * n);
     debug_assert!(lower.len() == n && pivot.len() == n && upper.len() == n);
+    // Every step flushed as in `eliminate` and `substitute`: the same bits either way.
     for r in 0..lines {
-        group[r * n] = group[r * n] * pivot[0];
+        group[r * n] = (group[r * n] * pivot[0]).flush_tiny();
     }
     for i in 1..n {
         let (l, p) = (lower[i], pivot[i]);
         for r in 0..lines {
             let at = r * n + i;
-            group[at] = (group[at] - l * group[at - 1]) * p;
+            group[at] = ((group[at] - l * group[at - 1]) * p).flush_tiny();
         }
     }
     for i in (0..n - 1).rev() {
         let u = upper[i];
         for r in 0..lines {
             let at = r * n + i;
-            group[at] = group[at] - u * group[at + 1];
+            group[at] = (group[at] - u * group[at + 1]).flush_tiny();
         }
     }
 }
 
 /// The forward elimination of step `i` of the system along a line, on a whole row of lanes
 /// at once (lane by lane the Thomas recurrence): `here` is row `i`, `above` row `i − 1`
-/// already eliminated (`None` for `i = 0`).
+/// already eliminated (`None` for `i = 0`). Each value is flushed ([`Real::flush_tiny`]):
+/// in a run of zeros the recurrence decays geometrically into subnormal numbers, which slow
+/// every later operation that reads them; flushed, the run stays exact zeros.
 #[inline(always)]
 pub(super) fn eliminate<T: SplineReal>(
     here: &mut [T],
@@ -118,17 +121,17 @@ pub(super) fn eliminate<T: SplineReal>(
     if let Some(above) = above {
         let (l, p) = (lower[i], pivot[i]);
         for (x, &a) in here.iter_mut().zip(above) {
-            *x = (*x - l * a) * p;
+            *x = ((*x - l * a) * p).flush_tiny();
         }
     } else {
         for x in here.iter_mut() {
-            *x = *x * pivot[0];
+            *x = (*x * pivot[0]).flush_tiny();
         }
     }
 }
 
 /// The back substitution of step `i` (after [`eliminate`] of every step): `below` is row
-/// `i + 1`, already solved.
+/// `i + 1`, already solved; flushed as [`eliminate`].
 #[inline(always)]
 pub(super) fn substitute<T: SplineReal>(
     here: &mut [T],
@@ -138,7 +141,7 @@ pub(super) fn substitute<T: SplineReal>(
 ) {
     let u = upper[i];
     for (x, &b) in here.iter_mut().zip(below) {
-        *x = *x - u * b;
+        *x = (*x - u * b).flush_tiny();
     }
 }
 

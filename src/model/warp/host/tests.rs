@@ -444,3 +444,35 @@ fn the_adjoint_splits_few_planes_without_changing_the_sum() {
         assert!((a - b).abs() < 1e-12);
     }
 }
+
+/// A bright pixel in a long run of zeros (a ReLU feature's usual plane): the recurrences'
+/// geometric tails would reach subnormal numbers 60-odd samples away; flushed, no
+/// coefficient is subnormal, every one stays within float32 rounding of the float64
+/// prefilter's (whose tails do pass through float32's subnormal range), and the planar and
+/// channels-last prefilters still agree bit for bit.
+#[test]
+fn the_prefilter_leaves_no_subnormal_coefficient() {
+    let (h, w) = (3, 160);
+    let mut f = vec![0.0f64; h * w];
+    f[w + 2] = 1.0;
+    let mut want = f.clone();
+    prefilter(&mut want, h, w, false);
+    assert!(
+        want.iter()
+            .any(|v| *v != 0.0 && v.abs() < f64::from(f32::MIN_POSITIVE)),
+        "the case must reach float32's subnormal range unflushed"
+    );
+    let f32s: Vec<f32> = f.iter().map(|&v| v as f32).collect();
+    let mut planar = f32s.clone();
+    prefilter(&mut planar, h, w, false);
+    let mut table = vec![f32::NAN; f32s.len()];
+    prefilter_channels_last(&f32s, &mut table, (1, 1, h, w));
+    assert_eq!(planar, table);
+    for (i, (&got, &want)) in planar.iter().zip(&want).enumerate() {
+        assert!(got == 0.0 || got.is_normal(), "coefficient {i}: {got:e}");
+        assert!(
+            (f64::from(got) - want).abs() <= 1e-6,
+            "coefficient {i}: {got:e} against {want:e}"
+        );
+    }
+}
