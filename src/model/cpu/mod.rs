@@ -50,10 +50,10 @@ pub trait Real:
     /// 0 where `|self|` is below [`FLUSH_BELOW_F32`] (float32) or [`FLUSH_BELOW_F64`]
     /// (float64), else `self` (NaN kept). The prefilter's recurrences decay by `2 − √3` a
     /// sample into a run of zeros (ReLU features have long ones) and reach subnormal
-    /// numbers, which on some CPUs cost a microcode assist per operation: every later sum
+    /// numbers, which on Intel CPUs cost a microcode assist per operation: every later sum
     /// that reads them (the 16-neighbour sums of each warp) ran 18× slower per value, a
-    /// 112² deep sweep 5× (docs/benchmarks.md, "Subnormal coefficients"). A vector compare
-    /// and mask per value.
+    /// 112² deep sweep 4.6× (docs/benchmarks.md, "Subnormal coefficients"). A vector
+    /// compare and mask per value.
     fn flush_tiny(self) -> Self;
     /// `eˣ`.
     fn exp(self) -> Self;
