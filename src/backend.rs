@@ -305,12 +305,41 @@ fn probe_wgpu(device: &Device) -> Result<()> {
 
 /// A rayon pool of one thread per core (the CPU backends' kernels split their work over the
 /// pool of the thread that calls them), whose threads have the main thread's stack size:
-/// the generated VGG19 code has large frames. `None` if the threads cannot be started.
+/// the generated VGG19 code has large frames, and compute subnormal numbers as zero
+/// ([`flush_subnormals_on_this_thread`]). `None` if the threads cannot be started.
 pub fn solver_pool() -> Option<rayon::ThreadPool> {
     rayon::ThreadPoolBuilder::new()
         .stack_size(8 << 20)
+        .start_handler(|_| flush_subnormals_on_this_thread())
         .build()
         .ok()
+}
+
+/// Makes the calling thread's float arithmetic treat subnormal numbers (below 1.2e-38 in
+/// float32) as zero, on input and on output (x86-64's MXCSR bits DAZ and FTZ; elsewhere
+/// nothing). Intel cores take a microcode assist of ~100 cycles for each operation that
+/// meets one, and the deep model makes them: ReLU features are runs of exact zeros, and
+/// every decay towards such a run (the prefilter's recurrences, a spline weight times a
+/// small coefficient, a gradient step) passes through the subnormal range
+/// (docs/benchmarks.md, "Subnormal coefficients"). A subnormal value is below every
+/// tolerance the solver has by 30 orders of magnitude, so flushing it changes no decision.
+///
+/// Only the [`solver_pool`]'s own threads call this: a caller's threads (a Python
+/// interpreter's, an application's) keep their floating-point environment.
+pub fn flush_subnormals_on_this_thread() {
+    #[cfg(target_arch = "x86_64")]
+    {
+        /// MXCSR's flush-to-zero (bit 15) and denormals-are-zero (bit 6).
+        const FTZ_DAZ: u32 = 0x8040;
+        let mut csr = 0u32;
+        // SAFETY: stmxcsr / ldmxcsr read and write this thread's SSE control register
+        // through a valid u32; setting FTZ and DAZ changes only how subnormal values round.
+        unsafe {
+            std::arch::asm!("stmxcsr [{}]", in(reg) &mut csr, options(nostack, preserves_flags));
+            csr |= FTZ_DAZ;
+            std::arch::asm!("ldmxcsr [{}]", in(reg) &csr, options(nostack, preserves_flags));
+        }
+    }
 }
 
 /// Runs `job` on a worker of a [`solver_pool`] (on the calling thread if there is none).
@@ -347,6 +376,24 @@ impl std::str::FromStr for Backend {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `x · 0.5` for the smallest normal float32 `x`: subnormal where subnormals are kept.
+    fn half_of_the_smallest_normal() -> f32 {
+        std::hint::black_box(f32::MIN_POSITIVE) * std::hint::black_box(0.5f32)
+    }
+
+    #[test]
+    fn the_solver_pool_flushes_subnormals_and_the_caller_keeps_them() {
+        let on_a_worker = on_a_worker(half_of_the_smallest_normal);
+        if cfg!(target_arch = "x86_64") {
+            assert_eq!(on_a_worker, 0.0, "FTZ on the solver's threads");
+        }
+        let here = half_of_the_smallest_normal();
+        assert!(
+            here > 0.0 && here < f32::MIN_POSITIVE,
+            "the calling thread's environment is left alone: {here:e}"
+        );
+    }
 
     #[test]
     fn a_device_knows_its_backend_with_or_without_autodiff() {
