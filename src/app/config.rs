@@ -410,6 +410,10 @@ pub struct Outcome {
     /// The deep model: RMS of each VGG tap of the inputs before scaling, relu1_2 first.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub tap_rms: Option<Vec<f64>>,
+    /// The time printed before the solve, level by level (compare each level's
+    /// `seconds`); absent when the run was not asked to estimate it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub estimate: Option<crate::solver::estimate::TimeEstimate>,
 }
 
 /// `config.json`: everything needed to reproduce a run, and how it ended.

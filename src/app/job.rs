@@ -39,6 +39,7 @@ use crate::model::feature_model::FeatureModel;
 use crate::model::grid::{Grid, host_values};
 use crate::model::inbetween::Clip;
 use crate::read::is_regular_file;
+use crate::solver::estimate::TimeEstimate;
 use crate::solver::ipalm::Schedule;
 use crate::solver::multilevel::{Draft, Morph, Multilevel};
 use crate::solver::observer::{Observer, Termination};
@@ -76,6 +77,9 @@ pub struct MorphResult {
     pub seconds: f64,
     /// The deep model: RMS of each VGG tap of the inputs before scaling.
     pub tap_rms: Option<Vec<f64>>,
+    /// The time predicted before the solve, when the job was asked for it
+    /// ([`MorphJob::estimate_time`]).
+    pub estimate: Option<TimeEstimate>,
     /// VGG19's weights when their file is a pipe, which can be read only once: the
     /// feature-space metric needs them again after the solve. A regular file is read again
     /// instead (the weights are not held through the solve, for memory).
@@ -398,6 +402,7 @@ impl MorphJob {
         if let Some((level, sweep)) = self.inject_nonfinite {
             driver = driver.inject_nonfinite(level, sweep);
         }
+        let mut predicted = None;
         if self.estimate_time
             && let Some(mut estimate) =
                 driver.estimate_time(&device, &u_a, &u_b, &model, interrupt)?
@@ -406,6 +411,7 @@ impl MorphJob {
             // morph and of the cross-fade, their shared ends once (`feature_path`).
             estimate.after_solve = forward_seconds * (2 * self.config.solver.steps) as f64;
             observer.estimate(&estimate);
+            predicted = Some(estimate);
         }
         let mut energy = EnergyLog::default();
         if let Some(dir) = &self.resume {
@@ -442,6 +448,7 @@ impl MorphJob {
                 FeatureModel::Deep(deep) => Some(deep.rms().to_vec()),
                 FeatureModel::Rgb => None,
             },
+            estimate: predicted,
             pipe_weights,
         })
     }
@@ -561,6 +568,7 @@ impl MorphResult {
                 seconds: self.seconds,
                 levels: self.morph.levels.clone(),
                 tap_rms: self.tap_rms.clone(),
+                estimate: self.estimate.clone(),
             },
         }
     }

@@ -37,12 +37,15 @@ pub const CALIBRATION_PIXELS: usize = 64 * 64;
 /// as a sweep of the morph, tens of seconds before the morph even starts).
 pub const CALIBRATION_STEPS: usize = 16;
 
-/// A morph's predicted time, level by level.
-#[derive(Clone, Debug, PartialEq)]
+/// A morph's predicted time, level by level; `config.json` records it (`outcome.estimate`)
+/// beside what each level took (`outcome.levels[l].seconds`).
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct TimeEstimate {
     /// Predicted seconds of one joint sweep on each level, coarse to fine.
+    #[serde(rename = "joint_sweep_seconds")]
     pub joint: Vec<f64>,
     /// Predicted seconds of one feature-only sweep on each level (deep model; 0 for RGB).
+    #[serde(rename = "features_only_sweep_seconds")]
     pub features_only: Vec<f64>,
     /// `J`.
     pub sweeps: usize,
@@ -56,6 +59,7 @@ pub struct TimeEstimate {
     /// Predicted seconds of the work after the solve that is not writing files: the deep
     /// model's feature-space path metric, `2K` VGG19 forwards at the working size, timed by
     /// the caller on the inputs' forwards (0: none, the RGB model).
+    #[serde(rename = "after_solve_seconds")]
     pub after_solve: f64,
 }
 
@@ -75,6 +79,12 @@ impl TimeEstimate {
                 + (self.sweeps - joint_done) as f64 * self.joint[l];
         }
         total
+    }
+
+    /// Seconds of level `level`'s sweeps, all of them run.
+    pub fn level(&self, level: usize) -> f64 {
+        self.remaining_after(level, Phase::Features, 0)
+            - self.remaining_after(level + 1, Phase::Features, 0)
     }
 
     /// Seconds of the whole morph, every level running all its sweeps, and what follows the
@@ -234,6 +244,10 @@ mod tests {
         assert_eq!(e.remaining_after(1, Phase::Features, 2), 1.0 + 20.0 + 46.0);
         assert_eq!(e.remaining_after(1, Phase::Joint, 0), 20.0 + 46.0);
         assert_eq!(e.remaining_after(2, Phase::Joint, 10), 0.0);
+        assert_eq!(
+            [e.level(0), e.level(1), e.level(2)],
+            [10.0, 3.0 + 20.0, 6.0 + 40.0]
+        );
         let measured = TimeEstimate {
             after_solve: 7.5,
             ..e

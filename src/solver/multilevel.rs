@@ -646,6 +646,7 @@ impl Multilevel {
         let mut stopped = None;
         let mut partial = None;
         let interrupted = || interrupt.load(Ordering::Relaxed);
+        let level_started = Instant::now();
         while let Some(outcome) = run.next_sweep(&interrupted)? {
             let swept = match outcome {
                 Outcome::Swept(swept) => swept,
@@ -730,6 +731,7 @@ impl Multilevel {
                 Some(Termination::NonFinite { .. }) => LevelStop::NonFinite,
                 _ => level_stop,
             },
+            seconds: level_started.elapsed().as_secs_f64(),
         };
         Ok(Executed {
             summary,

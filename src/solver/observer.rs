@@ -86,6 +86,11 @@ pub struct LevelSummary {
     pub sweeps: usize,
     /// Why it stopped.
     pub stop: LevelStop,
+    /// Wall-clock seconds of its sweeps (feature-only and joint; not the level's set-up):
+    /// in a resumed morph, those of this run only. 0 in checkpoints written before this
+    /// was recorded.
+    #[serde(default)]
+    pub seconds: f64,
 }
 
 /// Receives progress from the driver; everything outside the numerics (progress bars,
