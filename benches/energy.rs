@@ -81,6 +81,8 @@ fn sync(device: &Device) {
 }
 
 fn benches(c: &mut Criterion) {
+    // The program's pages (`host_memory::prefer_small_pages`); `MIMALLOC_ALLOW_THP=1` for huge.
+    deepmorph::host_memory::prefer_small_pages();
     for backend in Backend::compiled() {
         let Ok(plain) = backend.device_for(Precision::F32) else {
             continue;

@@ -57,6 +57,7 @@ fn deep_features(u: Tensor<4>, eta: f64) -> Tensor<4> {
 }
 
 fn deep_benches(c: &mut Criterion) {
+    deepmorph::host_memory::prefer_small_pages();
     let mut group = c.benchmark_group(format!("sweep_deep_K{DEEP_STEPS}"));
     group
         .sample_size(10)
@@ -100,6 +101,8 @@ fn deep_benches(c: &mut Criterion) {
 }
 
 fn benches(c: &mut Criterion) {
+    // The program's pages (`host_memory::prefer_small_pages`); `MIMALLOC_ALLOW_THP=1` for huge.
+    deepmorph::host_memory::prefer_small_pages();
     let mut group = c.benchmark_group("sweep_K15");
     group
         .sample_size(10)

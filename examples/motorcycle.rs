@@ -54,7 +54,8 @@ struct Args {
 }
 
 fn main() -> Result<()> {
-    // The solver's thread on a worker of the kernels' pool, as the CLI runs it.
+    // Small pages and the solver's thread on a worker of the kernels' pool, as the CLI runs.
+    deepmorph::host_memory::prefer_small_pages();
     deepmorph::backend::on_a_worker(run)
 }
 

@@ -172,7 +172,8 @@ struct RunRecord {
 }
 
 fn main() -> Result<()> {
-    // The solver's thread on a worker of the kernels' pool, as the CLI runs it.
+    // Small pages and the solver's thread on a worker of the kernels' pool, as the CLI runs.
+    deepmorph::host_memory::prefer_small_pages();
     deepmorph::backend::on_a_worker(run)
 }
 

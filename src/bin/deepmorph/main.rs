@@ -67,6 +67,7 @@ const EXIT_NONFINITE: i32 = 3;
 const EXIT_INTERRUPTED: i32 = 130;
 
 fn main() {
+    deepmorph::host_memory::prefer_small_pages();
     let cli = Cli::parse();
     let code = deepmorph::backend::on_a_worker(|| run(cli)).unwrap_or_else(|e| {
         eprintln!("Error: {e:#}");
