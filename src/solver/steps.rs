@@ -19,7 +19,7 @@ use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
 use crate::model::deformation::{admissible_each, min_det_each};
-use crate::model::energy::data::data_term_from_warped;
+use crate::model::energy::data::data_term_given;
 use crate::model::energy::regularizer::{mean_density, weighted_density};
 use crate::model::warp::Sampler;
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
@@ -727,24 +727,21 @@ impl Ipalm {
             let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
             let leaf = x_tilde.clone().require_grad();
             let warped = sampler.sample(bspline.coefficients(leaf.clone()));
-            // The data terms of the residuals T[x, φ_k] − f_{k−1} and T[f_{k+1}, φ_{k+1}] − x,
-            // each the fused squared distance of its two sides (the residuals are never
-            // tensors). The Q_k are independent: the gradient of their sum is each one's.
-            let q = (data_term_from_warped(warped.clone(), prev.clone(), c_tot)
-                + data_term_from_warped(next_block.clone(), leaf.clone(), c_tot))
+            let warped_tilde = warped.clone().detach();
+            // The squared norms of the residuals T[x̃, φ_k] − f_{k−1} and
+            // T[f_{k+1}, φ_{k+1}] − x̃ as the decisions sum them, once: they are also the
+            // values of Q's data terms, whose ops then only differentiate (the residuals are
+            // never tensors). The Q_k are independent: the gradient of their sum is each one's.
+            let moved = grid.decision_distance2_each(warped_tilde.clone(), prev.clone());
+            let fixed = grid.decision_distance2_each(next_block.clone(), x_tilde.clone());
+            let q = (data_term_given(warped, prev.clone(), c_tot, moved.clone())
+                + data_term_given(next_block.clone(), leaf.clone(), c_tot, fixed.clone()))
             .sum()
             .mul_scalar(steps / delta);
             let grads = q.backward();
             let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let warped_tilde = warped.detach();
-            let [moved, fixed, grad_norm2] = read_groups(
-                grid,
-                [
-                    grid.decision_distance2_each(warped_tilde.clone(), prev.clone()),
-                    grid.decision_distance2_each(next_block.clone(), x_tilde.clone()),
-                    grid.decision_norm2_each(grad.clone()),
-                ],
-            );
+            let [moved, fixed, grad_norm2] =
+                read_groups(grid, [moved, fixed, grid.decision_norm2_each(grad.clone())]);
             let q_tilde: Vec<f64> = (0..n).map(|i| (moved[i] + fixed[i]) * scale).collect();
             if let Some(i) =
                 (0..n).find(|&i| !(q_tilde[i].is_finite() && grad_norm2[i].is_finite()))

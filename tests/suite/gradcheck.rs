@@ -374,7 +374,7 @@ fn data_term_gradient_check_with(backend: Backend, gather: Gather) {
 /// hand-written backward on flex, composed elsewhere): its value against the composed sum,
 /// its autodiff gradients of `Σ_n w_n D_n` against the hand-derived `±2 w_n (a_n − b_n)` and
 /// finite differences in float64; in float32 its gradient is the composed backward's bit for
-/// bit (`2g·d` against `g·d + g·d`).
+/// bit (`2g·d` against `g·d + g·d`); given its value, the same value and gradients.
 fn squared_distance_gradient_check(backend: Backend) {
     use deepmorph::model::energy::distance_op::distance2_each;
     let mut s = Setup::new(backend, 6);
@@ -481,6 +481,21 @@ fn squared_distance_gradient_check(backend: Backend) {
     assert_eq!(
         fused[1], composed[1],
         "float32 dD/db: fused and composed backward differ"
+    );
+
+    // Given its value (a feature step passes its decision sums), the op returns that value
+    // in the tensors' dtype and differentiates exactly as the fused one.
+    use deepmorph::model::energy::distance_op::distance2_each_given;
+    let sums = grid.decision_distance2_each(a.clone(), b.clone());
+    let leaves = [a.clone(), b.clone()].map(|t| t.require_grad());
+    let given = distance2_each_given(leaves[0].clone(), leaves[1].clone(), sums.clone());
+    let want: Vec<f64> = values(sums).iter().map(|&v| f64::from(v as f32)).collect();
+    assert_eq!(values(given.clone()), want, "the given value comes back");
+    let grads = (given * w.clone()).sum().backward();
+    let given = leaves.map(|t| values(t.grad(&grads).unwrap()));
+    assert_eq!(
+        given, fused,
+        "float32 dD/da, dD/db: given and fused backward differ"
     );
 }
 

@@ -2,7 +2,7 @@
 
 use burn::tensor::Tensor;
 
-use crate::model::energy::distance_op::distance2_each;
+use crate::model::energy::distance_op::{distance2_each, distance2_each_given};
 use crate::model::warp::BSpline;
 
 /// `D[f_n, f̃_n, φ_n]` for each triple of the batch.
@@ -49,7 +49,29 @@ pub fn data_term_from_coefficients(
 /// - `warped`: `[N, C, H, W]`, `f`: `[N, C, H, W]`
 /// - output: `[N]`
 pub fn data_term_from_warped(warped: Tensor<4>, f: Tensor<4>, c_tot: usize) -> Tensor<1> {
-    let [_, _, h, w] = warped.dims();
-    let scale = 1.0 / (2.0 * c_tot as f64 * (h * w) as f64);
+    let scale = data_scale(&warped, c_tot);
     distance2_each(warped, f).mul_scalar(scale)
+}
+
+/// [`data_term_from_warped`] whose squared residual norms `Σ (T[f̃, φ] − f)²` of each item
+/// the caller has summed already (a feature step's decision sums): the value is theirs,
+/// scaled, with no pass of its own ([`distance2_each_given`]); the gradient is the same.
+///
+/// # Shapes
+/// - `warped`: `[N, C, H, W]`, `f`: `[N, C, H, W]`, `residual_norm2`: `[N]`
+/// - output: `[N]`
+pub fn data_term_given(
+    warped: Tensor<4>,
+    f: Tensor<4>,
+    c_tot: usize,
+    residual_norm2: Tensor<1>,
+) -> Tensor<1> {
+    let scale = data_scale(&warped, c_tot);
+    distance2_each_given(warped, f, residual_norm2).mul_scalar(scale)
+}
+
+/// `1 / (2·C_tot·H·W)`, the data term's weight of a squared residual norm (SPEC §5).
+fn data_scale(warped: &Tensor<4>, c_tot: usize) -> f64 {
+    let [_, _, h, w] = warped.dims();
+    1.0 / (2.0 * c_tot as f64 * (h * w) as f64)
 }

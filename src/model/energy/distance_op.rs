@@ -45,6 +45,17 @@ pub trait DistanceOps: Backend {
         let squares = Self::float_reshape(Self::float_mul(d.clone(), d), Shape::new([n, per_item]));
         Self::float_reshape(Self::float_sum_dim(squares, 1), Shape::new([n]))
     }
+    /// [`distance2_each`](DistanceOps::distance2_each) whose value the caller has summed
+    /// already (`value`, `[N]`, in any float dtype): returned in `a`'s dtype without a pass
+    /// over `a` and `b`; differentiated as the distance.
+    fn distance2_each_given(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        value: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let _ = b;
+        Self::float_cast(value, a.dtype().into())
+    }
     /// `s_n · (a_n − b_n)` for each item `n`: `a`, `b` and the output `[N, …]`, `s` `[N]`.
     /// The backward of [`distance2_each`] (with `s = 2g`); not differentiable itself.
     fn scaled_difference(
@@ -80,6 +91,59 @@ pub fn distance2_each(a: Tensor<4>, b: Tensor<4>) -> Tensor<1> {
     Tensor::from_dispatch(Dispatch::distance2_each(
         a.into_dispatch(),
         b.into_dispatch(),
+    ))
+}
+
+/// [`distance2_each`] of `a` and `b` whose value `value` the caller has already summed:
+/// `Σ (a_n − b_n)²` of each item, as the decision sums of SPEC §6 give it
+/// (`Grid::decision_distance2_each`, float64 on the CPU). The forward returns it in the
+/// tensors' dtype instead of summing again; the gradients are [`distance2_each`]'s. A feature
+/// step needs both the decision sums of its residuals and their gradient: this is one pass
+/// over each residual's two sides where the pair of ops made two. Debug builds check `value`
+/// against a sum of their own.
+///
+/// # Shapes
+/// - `a`, `b`: `[N, C, H, W]`
+/// - `value`, output: `[N]`
+///
+/// # Panics
+///
+/// If the shapes differ.
+pub fn distance2_each_given(a: Tensor<4>, b: Tensor<4>, value: Tensor<1>) -> Tensor<1> {
+    assert_eq!(a.dims(), b.dims(), "squared distance: shapes differ");
+    assert_eq!(
+        value.dims(),
+        [a.dims()[0]],
+        "squared distance: one value per item"
+    );
+    let value = value.detach();
+    #[cfg(debug_assertions)]
+    {
+        let summed = distance2_each(a.clone().detach(), b.clone().detach()).into_data();
+        let given = value.clone().into_data();
+        let (summed, given) = (
+            summed
+                .convert::<f64>()
+                .into_vec::<f64>()
+                .expect("float values"),
+            given
+                .convert::<f64>()
+                .into_vec::<f64>()
+                .expect("float values"),
+        );
+        for (s, g) in summed.iter().zip(&given) {
+            assert!(
+                // A float32 sum (wgpu, ndarray's composed value) rounds apart from the
+                // float64 one by far less; a wrong value (another pair, unscaled) by far more.
+                (s - g).abs() <= 1e-3 * s.abs().max(f64::MIN_POSITIVE),
+                "squared distance: given {g}, summed {s}"
+            );
+        }
+    }
+    Tensor::from_dispatch(Dispatch::distance2_each_given(
+        a.into_dispatch(),
+        b.into_dispatch(),
+        value.into_dispatch(),
     ))
 }
 
@@ -302,6 +366,27 @@ mod autodiff {
                     prep.finish((a, b), out)
                 }
                 OpsKind::UnTracked(prep) => prep.finish(B::distance2_each(a, b)),
+            }
+        }
+
+        fn distance2_each_given(
+            a: FloatTensor<Self>,
+            b: FloatTensor<Self>,
+            value: FloatTensor<Self>,
+        ) -> FloatTensor<Self> {
+            let (a, a_node) = a.into_parts();
+            let (b, b_node) = b.into_parts();
+            let (value, _) = value.into_parts();
+            match Distance2
+                .prepare::<C>([a_node, b_node])
+                .compute_bound()
+                .stateful()
+            {
+                OpsKind::Tracked(prep) => {
+                    let out = B::distance2_each_given(a.clone(), b.clone(), value);
+                    prep.finish((a, b), out)
+                }
+                OpsKind::UnTracked(prep) => prep.finish(B::distance2_each_given(a, b, value)),
             }
         }
 
