@@ -1,6 +1,7 @@
 //! How much memory this process may take and has taken, as the operating system says
 //! (Linux's `/proc`, `getrlimit`, the control group's files): what the memory checks before
 //! a morph (`app::memory`) and before decoding a large image (`io::images`) compare with.
+//! And the one page setting the solver needs from the kernel ([`prefer_small_pages`]).
 
 /// The most memory this process may still take, in bytes, and what sets it: the least of
 /// the memory available now (`MemAvailable`), the room left under the address-space limit
