@@ -352,21 +352,31 @@ mod autodiff {
         }
     }
 
+    /// The squared distance of `a` and `b` on the inner backend by `forward`, recorded with
+    /// its backward ([`Distance2`]) where either input is tracked.
+    fn tracked<B: DistanceOps, C: CheckpointStrategy>(
+        a: FloatTensor<Autodiff<B, C>>,
+        b: FloatTensor<Autodiff<B, C>>,
+        forward: impl FnOnce(FloatTensor<B>, FloatTensor<B>) -> FloatTensor<B>,
+    ) -> FloatTensor<Autodiff<B, C>> {
+        let (a, a_node) = a.into_parts();
+        let (b, b_node) = b.into_parts();
+        match Distance2
+            .prepare::<C>([a_node, b_node])
+            .compute_bound()
+            .stateful()
+        {
+            OpsKind::Tracked(prep) => {
+                let out = forward(a.clone(), b.clone());
+                prep.finish((a, b), out)
+            }
+            OpsKind::UnTracked(prep) => prep.finish(forward(a, b)),
+        }
+    }
+
     impl<B: DistanceOps, C: CheckpointStrategy> DistanceOps for Autodiff<B, C> {
         fn distance2_each(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
-            let (a, a_node) = a.into_parts();
-            let (b, b_node) = b.into_parts();
-            match Distance2
-                .prepare::<C>([a_node, b_node])
-                .compute_bound()
-                .stateful()
-            {
-                OpsKind::Tracked(prep) => {
-                    let out = B::distance2_each(a.clone(), b.clone());
-                    prep.finish((a, b), out)
-                }
-                OpsKind::UnTracked(prep) => prep.finish(B::distance2_each(a, b)),
-            }
+            tracked::<B, C>(a, b, B::distance2_each)
         }
 
         fn distance2_each_given(
@@ -374,20 +384,8 @@ mod autodiff {
             b: FloatTensor<Self>,
             value: FloatTensor<Self>,
         ) -> FloatTensor<Self> {
-            let (a, a_node) = a.into_parts();
-            let (b, b_node) = b.into_parts();
             let (value, _) = value.into_parts();
-            match Distance2
-                .prepare::<C>([a_node, b_node])
-                .compute_bound()
-                .stateful()
-            {
-                OpsKind::Tracked(prep) => {
-                    let out = B::distance2_each_given(a.clone(), b.clone(), value);
-                    prep.finish((a, b), out)
-                }
-                OpsKind::UnTracked(prep) => prep.finish(B::distance2_each_given(a, b, value)),
-            }
+            tracked::<B, C>(a, b, |a, b| B::distance2_each_given(a, b, value))
         }
 
         fn scaled_difference(
