@@ -928,8 +928,8 @@ fn backends(py: Python<'_>) -> Vec<String> {
 
 #[pymodule]
 fn _native(m: &Bound<'_, PyModule>) -> PyResult<()> {
-    // As the program: mimalloc's huge pages cleared whole at every refault cost a deep morph
-    // 10–15 % (`deepmorph::host_memory::prefer_small_pages`; `MIMALLOC_ALLOW_THP=1` keeps them).
+    // As the program: mimalloc's huge pages cleared whole at every refault cost deep sweeps up
+    // to 15 % (`deepmorph::host_memory::prefer_small_pages`; `MIMALLOC_ALLOW_THP=1` keeps them).
     deepmorph::host_memory::prefer_small_pages();
     m.add("__version__", env!("CARGO_PKG_VERSION"))?;
     m.add("Interrupted", m.py().get_type::<Interrupted>())?;
