@@ -4,7 +4,8 @@
 //! - [`backtracking`]: the one backtracking search on a Lipschitz estimate, with its give-up
 //!   rule, used by every step.
 //! - [`prox`]: the linearised data term of a deformation step and its pointwise prox;
-//!   [`prox_op`] its trial fused into one custom op (flex).
+//!   [`prox_op`] its trial fused into one custom op (flex); [`update_op`] the steps'
+//!   elementwise updates (the inertial extrapolation, a feature trial's gradient step) fused.
 //! - [`ipalm`]: the level's state and one sweep in either schedule ([`ipalm::Schedule`]):
 //!   the sequential one runs the steps `k = 1..K` one at a time, `batched` as three stacked
 //!   blocks; both take their steps from `steps` (SPEC §6 steps 2 and 3 for any set of `k`
@@ -28,3 +29,4 @@ pub mod observer;
 pub mod prox;
 pub mod prox_op;
 mod steps;
+pub mod update_op;

@@ -25,6 +25,7 @@ use crate::model::warp::Sampler;
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{DeformationStep, FeatureStep, Ipalm, LevelState, read_groups};
 use crate::solver::prox::{LinearisedData, pick};
+use crate::solver::update_op::{descend, extrapolate};
 
 /// Item `i` of a stacked tensor, `[1, …]` (the tensor itself if it holds one item).
 fn item<const D: usize>(t: &Tensor<D>, i: usize) -> Tensor<D> {
@@ -446,8 +447,7 @@ impl Ipalm {
         let stored: Vec<f64> = ks.iter().map(|&k| state.l_phi[k - 1]).collect();
         let streak: Vec<u32> = ks.iter().map(|&k| state.phi_streak[k - 1]).collect();
         let (point, extrapolated) = if self.config.beta > 0.0 {
-            let e = phi.clone()
-                + (phi.clone() - take(&state.phi_prev, ks, -1)).mul_scalar(self.config.beta);
+            let e = extrapolate(phi.clone(), take(&state.phi_prev, ks, -1), self.config.beta);
             let ok = admissible_each(&self.grid, e.clone());
             let point = if ok.iter().all(|&ok| ok) {
                 e
@@ -690,7 +690,7 @@ impl Ipalm {
         let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
         let f_k = take(&state.f, ks, 0);
         let f_tilde = if self.config.beta > 0.0 {
-            f_k.clone() + (f_k.clone() - take(&state.f_prev, ks, 0)).mul_scalar(self.config.beta)
+            extrapolate(f_k.clone(), take(&state.f_prev, ks, 0), self.config.beta)
         } else {
             f_k.clone()
         };
@@ -763,14 +763,7 @@ impl Ipalm {
             while let Some(trial) = searches.round() {
                 let items = indices(n, |i| trial[i].is_some());
                 let l: Vec<f64> = items.iter().filter_map(|&i| trial[i]).collect();
-                let candidates = match l[..] {
-                    [l] => pick(&x_tilde, &items) - pick(&grad, &items).mul_scalar(1.0 / l),
-                    _ => {
-                        let inverse =
-                            grid.tensor(l.iter().map(|l| 1.0 / l).collect(), [l.len(), 1, 1, 1]);
-                        pick(&x_tilde, &items) - pick(&grad, &items) * inverse
-                    }
-                };
+                let candidates = descend(pick(&x_tilde, &items), pick(&grad, &items), &l);
                 let coeffs = bspline.coefficients(candidates.clone());
                 let trial_warped = if items.len() == n {
                     sampler.sample(coeffs.clone())

@@ -1,0 +1,281 @@
+//! The elementwise updates of SPEC §6's steps as custom Burn ops (Burn 0.22's
+//! `#[backend_extension]`): the inertial extrapolation `x + β(x − x_prev)` (`f̃` and `φ̃`) and
+//! a feature trial's gradient step `x̃ − ∇Q/L`.
+//!
+//! Composed, the extrapolation is three elementwise ops (difference, scale, sum) and the
+//! gradient step two, each a pass over the frame into a fresh output on one core (flex runs
+//! its elementwise ops single-threaded). At 256² a deep frame is 17.6 MB: timed in a deep
+//! morph's feature steps, the extrapolation took 7 % of their time and the trials' gradient
+//! steps 5 %. Fused, each is one pass split over the cores, every value the composed chain's
+//! operations in its order: the same bits.
+//!
+//! - flex: the host kernel below.
+//! - ndarray, wgpu: the trait's default bodies, the composed ops.
+//! - autodiff: not differentiable (both are constants of a step: their inputs are the
+//!   state and a gradient already taken).
+//!
+//! The custom ops and the backends they have kernels for are listed in one place,
+//! `docs/architecture.md` ("Custom ops"): they are the only numerical code that names backends.
+
+#![allow(deprecated)] // `NdArray` is deprecated upstream in favour of flex; it stays served.
+
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
+use burn::tensor::{Scalar, Shape, Tensor, TensorData};
+
+/// The updates' primitives.
+#[backend_extension(
+    Flex: cfg(feature = "flex"),
+    NdArray: cfg(feature = "ndarray"),
+    Cube: cfg(feature = "wgpu"),
+    Autodiff
+)]
+pub trait UpdateOps: Backend {
+    /// `x + (x − previous)·β`; shapes as in [`extrapolate`].
+    fn extrapolate(
+        x: FloatTensor<Self>,
+        previous: FloatTensor<Self>,
+        beta: f64,
+    ) -> FloatTensor<Self> {
+        let step =
+            Self::float_mul_scalar(Self::float_sub(x.clone(), previous), Scalar::Float(beta));
+        Self::float_add(x, step)
+    }
+    /// `x_n − g_n·s_n` for each item `n`: `x`, `g` and the output `[N, …]`, `s` `[N]` in their
+    /// dtype.
+    fn descend(
+        x: FloatTensor<Self>,
+        g: FloatTensor<Self>,
+        s: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        let shape = x.shape();
+        let mut s_shape = vec![1; shape.num_dims()];
+        s_shape[0] = shape[0];
+        let s = Self::float_reshape(s, Shape::from(s_shape));
+        Self::float_sub(x, Self::float_mul(g, s))
+    }
+}
+
+#[cfg(feature = "ndarray")]
+impl UpdateOps for burn::backend::NdArray {}
+
+#[cfg(feature = "wgpu")]
+impl UpdateOps for burn::backend::Cube {}
+
+/// The inertial extrapolation `x + β(x − x_prev)` of SPEC §6 (`f̃`, `φ̃`): as the composed
+/// `x + (x − x_prev)·β` with `β` rounded to the tensors' precision, bit for bit.
+///
+/// # Shapes
+/// - `x`, `previous`, output: `[N, C, H, W]`
+///
+/// # Panics
+///
+/// If the shapes differ.
+pub fn extrapolate(x: Tensor<4>, previous: Tensor<4>, beta: f64) -> Tensor<4> {
+    assert_eq!(x.dims(), previous.dims(), "extrapolation: shapes differ");
+    Tensor::from_dispatch(Dispatch::extrapolate(
+        x.detach().into_dispatch(),
+        previous.detach().into_dispatch(),
+        beta,
+    ))
+}
+
+/// The gradient step `x_n − g_n / L_n` of each item `n` (SPEC §6 step 3's trial): as the
+/// composed `x − g·(1/L)` with `1/L` rounded to the tensors' precision, bit for bit.
+///
+/// # Shapes
+/// - `x`, `g`, output: `[N, C, H, W]`; `lipschitz`: `N` values
+///
+/// # Panics
+///
+/// If the shapes differ or `lipschitz` does not hold one value per item.
+pub fn descend(x: Tensor<4>, g: Tensor<4>, lipschitz: &[f64]) -> Tensor<4> {
+    assert_eq!(x.dims(), g.dims(), "gradient step: shapes differ");
+    assert_eq!(
+        lipschitz.len(),
+        x.dims()[0],
+        "gradient step: one L per item"
+    );
+    let inverse: Vec<f64> = lipschitz.iter().map(|l| 1.0 / l).collect();
+    let s = Tensor::<1>::from_data(
+        TensorData::new(inverse, [lipschitz.len()]),
+        (&x.device(), x.dtype()),
+    );
+    Tensor::from_dispatch(Dispatch::descend(
+        x.detach().into_dispatch(),
+        g.detach().into_dispatch(),
+        s.into_dispatch(),
+    ))
+}
+
+/// `out_i = f(a_i, b_i, s_n)` for the values `i` of item `n` (`a`, `b` and `out` hold `s.len()`
+/// items of equal length), written in chunks split over the cores.
+#[cfg(any(feature = "flex", test))]
+fn combine<T: Copy + Send + Sync>(
+    a: &[T],
+    b: &[T],
+    s: &[T],
+    f: impl Fn(T, T, T) -> T + Sync,
+) -> Vec<T> {
+    use rayon::prelude::*;
+    /// Values per task.
+    const CHUNK: usize = 1 << 14;
+    assert_eq!(a.len(), b.len(), "update: lengths differ");
+    let per_item = a.len() / s.len().max(1);
+    assert_eq!(per_item * s.len(), a.len(), "update: {} factors", s.len());
+    // Written chunk by chunk on the pool without zeroing first (a zeroed frame was a serial
+    // memset on the solver's thread).
+    let mut out = Vec::<T>::with_capacity(a.len());
+    let spare = &mut out.spare_capacity_mut()[..a.len()];
+    spare
+        .par_chunks_mut(CHUNK)
+        .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
+        .enumerate()
+        .for_each(|(chunk, (out, (a, b)))| {
+            // The chunk's runs of one item each, so the inner loop vectorises.
+            let (first, mut from) = (chunk * CHUNK, 0);
+            while from < out.len() {
+                let item = (first + from) / per_item;
+                let to = ((item + 1) * per_item - first).min(out.len());
+                let factor = s[item];
+                for ((o, &x), &y) in out[from..to].iter_mut().zip(&a[from..to]).zip(&b[from..to]) {
+                    o.write(f(x, y, factor));
+                }
+                from = to;
+            }
+        });
+    // SAFETY: every one of the `a.len()` values was written above.
+    unsafe { out.set_len(a.len()) };
+    out
+}
+
+#[cfg(feature = "flex")]
+mod flex {
+    use burn::backend::Flex;
+    use burn::backend::flex::FlexTensor;
+    use burn::tensor::{DType, TensorData};
+
+    use super::{UpdateOps, combine};
+    use crate::model::cpu::Real;
+    use crate::model::host_view::HostView;
+
+    trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
+    impl Kernel for f32 {}
+    impl Kernel for f64 {}
+
+    fn views(a: FlexTensor, b: FlexTensor, what: &str) -> (HostView, HostView) {
+        let (a, b) = (HostView::new(a), HostView::new(b));
+        assert!(
+            a.shape() == b.shape() && a.dtype() == b.dtype(),
+            "{what}: {:?} {:?} against {:?} {:?}",
+            a.shape(),
+            a.dtype(),
+            b.shape(),
+            b.dtype()
+        );
+        (a, b)
+    }
+
+    fn extrapolate_typed<T: Kernel>(x: &HostView, previous: &HostView, beta: f64) -> TensorData {
+        let out = combine(
+            x.values::<T>(),
+            previous.values::<T>(),
+            &[T::from_f64(beta)],
+            |x, p, beta| x + (x - p) * beta,
+        );
+        TensorData::new(out, x.shape())
+    }
+
+    fn descend_typed<T: Kernel>(x: &HostView, g: &HostView, s: &HostView) -> TensorData {
+        let out = combine(
+            x.values::<T>(),
+            g.values::<T>(),
+            s.values::<T>(),
+            |x, g, s| x - g * s,
+        );
+        TensorData::new(out, x.shape())
+    }
+
+    macro_rules! typed {
+        ($dtype:expr, $f:ident($($arg:expr),*)) => {
+            match $dtype {
+                DType::F32 => $f::<f32>($($arg),*),
+                DType::F64 => $f::<f64>($($arg),*),
+                other => panic!("the updates run in float32 or float64, not {other:?}"),
+            }
+        };
+    }
+
+    impl UpdateOps for Flex {
+        fn extrapolate(x: FlexTensor, previous: FlexTensor, beta: f64) -> FlexTensor {
+            let (x, previous) = views(x, previous, "extrapolation");
+            FlexTensor::from_data(typed!(x.dtype(), extrapolate_typed(&x, &previous, beta)))
+        }
+
+        fn descend(x: FlexTensor, g: FlexTensor, s: FlexTensor) -> FlexTensor {
+            let (x, g) = views(x, g, "gradient step");
+            let s = HostView::new(s);
+            assert!(
+                s.dtype() == x.dtype() && s.shape() == [x.shape()[0]],
+                "gradient step: factors {:?} {:?} for {:?} {:?}",
+                s.shape(),
+                s.dtype(),
+                x.shape(),
+                x.dtype()
+            );
+            FlexTensor::from_data(typed!(x.dtype(), descend_typed(&x, &g, &s)))
+        }
+    }
+}
+
+mod autodiff {
+    use burn::backend::Autodiff;
+    use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+    use burn::backend::tensor::FloatTensor;
+
+    use super::UpdateOps;
+
+    /// An update is a constant of its step: no gradient flows through it (its inputs are
+    /// detached by the public functions).
+    impl<B: UpdateOps, C: CheckpointStrategy> UpdateOps for Autodiff<B, C> {
+        fn extrapolate(
+            x: FloatTensor<Self>,
+            previous: FloatTensor<Self>,
+            beta: f64,
+        ) -> FloatTensor<Self> {
+            let (x, _) = x.into_parts();
+            let (previous, _) = previous.into_parts();
+            FloatTensor::<Self>::new(B::extrapolate(x, previous, beta))
+        }
+
+        fn descend(
+            x: FloatTensor<Self>,
+            g: FloatTensor<Self>,
+            s: FloatTensor<Self>,
+        ) -> FloatTensor<Self> {
+            let (x, _) = x.into_parts();
+            let (g, _) = g.into_parts();
+            let (s, _) = s.into_parts();
+            FloatTensor::<Self>::new(B::descend(x, g, s))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::combine;
+
+    #[test]
+    fn every_value_takes_its_items_factor() {
+        // Items longer than a chunk and not a multiple of it, so chunks straddle items.
+        let per_item = (1 << 14) + 7;
+        let a: Vec<f32> = (0..3 * per_item).map(|i| (i % 13) as f32 * 0.5).collect();
+        let b: Vec<f32> = (0..3 * per_item).map(|i| (i % 7) as f32 * 0.25).collect();
+        let s = [2.0f32, -0.5, 3.0];
+        let out = combine(&a, &b, &s, |x, y, s| x - y * s);
+        assert_eq!(out.len(), a.len());
+        for (i, &v) in out.iter().enumerate() {
+            assert_eq!(v, a[i] - b[i] * s[i / per_item], "value {i}");
+        }
+    }
+}
