@@ -926,6 +926,42 @@ fn a_sweep_stopped_between_blocks_goes_on_exactly(backend: Backend) {
     }
 }
 
+/// The steps' fused updates (`update_op`) are the composed chains they replace, bit for bit:
+/// the extrapolation `x + (x − x_prev)·β` and a feature trial's `x̃ − ∇Q·(1/L)`, one `L` per
+/// item, with items longer than the flex kernel's chunks.
+fn fused_updates_equal_the_composed_chains(backend: Backend) {
+    use deepmorph::solver::update_op::{descend, extrapolate};
+    let device = device(backend, Precision::F32, true);
+    let grid = Grid::new(96, 90, &device, burn::tensor::DType::F32).unwrap();
+    let shape = [2, 3, 96, 90];
+    let len: usize = shape.iter().product();
+    let wave = |seed: f64| {
+        let values = (0..len)
+            .map(|i| (i as f64 * 0.377 + seed).sin() * 1.7)
+            .collect();
+        grid.tensor(values, shape)
+    };
+    let (x, previous, g) = (wave(0.1), wave(2.3), wave(4.9));
+    let beta = std::f64::consts::FRAC_1_SQRT_2;
+    assert_eq!(
+        values(extrapolate(x.clone(), previous.clone(), beta)),
+        values(x.clone() + (x.clone() - previous.clone()).mul_scalar(beta)),
+        "{backend:?}: extrapolation"
+    );
+    let lipschitz = [3.7, 0.061];
+    let stepped = values(descend(x.clone(), g.clone(), &lipschitz));
+    let per_item = len / 2;
+    for (i, l) in lipschitz.iter().enumerate() {
+        let item = |t: &Tensor<4>| t.clone().narrow(0, i, 1);
+        let composed = values(item(&x) - item(&g).mul_scalar(1.0 / l));
+        assert_eq!(
+            stepped[i * per_item..(i + 1) * per_item],
+            composed[..],
+            "{backend:?}: gradient step of item {i}"
+        );
+    }
+}
+
 on_each_cpu_backend!(
     a_sweep_stopped_between_blocks_goes_on_exactly,
     deformation_searches_shrink_faster_while_they_accept_at_once,
@@ -942,9 +978,12 @@ on_each_cpu_backend!(
     a_batch_item_is_decided_as_inside_the_whole_batch,
 );
 
-/// The non-finite path on every backend, wgpu included.
+/// The non-finite path and the fused updates on every backend, wgpu included.
 mod every_backend {
     use super::*;
 
-    on_each_backend!(a_nan_stops_with_the_last_finite_iterate);
+    on_each_backend!(
+        a_nan_stops_with_the_last_finite_iterate,
+        fused_updates_equal_the_composed_chains
+    );
 }
