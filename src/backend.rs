@@ -72,8 +72,8 @@ pub struct Capabilities {
     /// host kernel of [`crate::model::energy::anisotropy_op`]: flex. The others compose it.
     pub fused_anisotropy: bool,
     /// Whether the fused spline kernels keep many-channel coefficients channels-last and
-    /// read them so in place ([`crate::model::warp::op`]): flex. Joining channel blocks of
-    /// coefficients then keeps that layout ([`crate::model::warp::BSpline::join`]).
+    /// read them so in place ([`crate::model::warp::op`]): flex. A channel block narrowed
+    /// from a frame's coefficients is read in place too.
     pub channels_last_coefficients: bool,
 }
 

@@ -1,5 +1,6 @@
 //! The pixel grid a level of the model lives on.
 
+use std::ops::Range;
 use std::sync::{Arc, OnceLock};
 
 use burn::tensor::{Bool, DType, Device, Tensor, TensorData};
@@ -151,6 +152,89 @@ impl Grid {
             |t, _| self.decision_norm2(t),
             |t, _| t.square(),
         )
+    }
+
+    /// [`decision_distance2`](Self::decision_distance2) of each item and channel block of a
+    /// batch: `[N · B]`, item-major (entry `i·B + b` for item `i`, block `b`). Each entry is
+    /// what the item's block alone gives, bit for bit (a feature step decides each block on
+    /// its own, SPEC §6 step 3); with one block, [`decision_distance2_each`](Self::decision_distance2_each).
+    ///
+    /// # Shapes
+    /// - `a`, `b`: `[N, C, H, W]`; `blocks`: ranges of channels
+    pub fn decision_distance2_blocks(
+        &self,
+        a: Tensor<4>,
+        b: Tensor<4>,
+        blocks: &[Range<usize>],
+    ) -> Tensor<1> {
+        self.each_block(
+            a,
+            b,
+            blocks,
+            |a, b| self.decision_distance2(a, b),
+            |a, b| (a - b).square(),
+        )
+    }
+
+    /// [`decision_norm2`](Self::decision_norm2) of each item and channel block: `[N · B]`, as
+    /// [`decision_distance2_blocks`](Self::decision_distance2_blocks).
+    pub fn decision_norm2_blocks(&self, t: Tensor<4>, blocks: &[Range<usize>]) -> Tensor<1> {
+        self.each_block(
+            t.clone(),
+            t,
+            blocks,
+            |t, _| self.decision_norm2(t),
+            |t, _| t.square(),
+        )
+    }
+
+    /// [`each_pair`](Self::each_pair) of every channel block: where the sums are float64,
+    /// each item's block through `whole` on its own (a block of one item is contiguous, read
+    /// in place); in float32, `summand` reduced per item and block.
+    fn each_block(
+        &self,
+        a: Tensor<4>,
+        b: Tensor<4>,
+        blocks: &[Range<usize>],
+        whole: impl Fn(Tensor<4>, Tensor<4>) -> Tensor<1>,
+        summand: impl Fn(Tensor<4>, Tensor<4>) -> Tensor<4>,
+    ) -> Tensor<1> {
+        if let [block] = blocks
+            && block.len() == a.dims()[1]
+        {
+            return self.each_pair(a, b, whole, summand);
+        }
+        let [n, c, h, w] = a.dims();
+        match self.accumulation() {
+            Accumulation::Float64 => Tensor::cat(
+                (0..n)
+                    .flat_map(|i| blocks.iter().map(move |block| (i, block)))
+                    .map(|(i, block)| {
+                        let part = |t: &Tensor<4>| {
+                            t.clone()
+                                .narrow(0, i, 1)
+                                .narrow(1, block.start, block.len())
+                        };
+                        whole(part(&a), part(&b))
+                    })
+                    .collect(),
+                0,
+            ),
+            Accumulation::Float32 => {
+                let t = summand(a.detach(), b.detach()).reshape([n, c, h * w]);
+                let sums = blocks
+                    .iter()
+                    .map(|block| {
+                        t.clone()
+                            .narrow(1, block.start, block.len())
+                            .sum_dim(2)
+                            .sum_dim(1)
+                            .reshape([n, 1])
+                    })
+                    .collect();
+                Tensor::cat(sums, 1).reshape([n * blocks.len()])
+            }
+        }
     }
 
     /// A decision reduction `whole` of two tensors, item by item along dimension 0: where

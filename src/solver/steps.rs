@@ -15,13 +15,14 @@
 //! ([`crate::model::grid::Grid::decision_sum`]), each item's bit for bit what it gives
 //! alone, and each trial reads its scalars back in one transfer.
 
+use std::ops::Range;
+
 use burn::tensor::Tensor;
 
 use crate::error::{Error, Result};
 use crate::model::deformation::{admissible_each, min_det_each};
 use crate::model::energy::data::data_term_given;
 use crate::model::energy::regularizer::{mean_density, weighted_density};
-use crate::model::warp::Sampler;
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{DeformationStep, FeatureStep, Ipalm, LevelState, read_groups};
 use crate::solver::prox::{LinearisedData, pick};
@@ -550,14 +551,12 @@ impl Ipalm {
         if live.is_empty() {
             return Ok(());
         }
-        // `T[f_k, φ_k]` by blocks, as a carried one was: the safeguard's reference value is
-        // then the same whichever way it came.
         let reference_warp = match reference_warp {
             Some(warped) => pick(&warped, &live),
-            None => {
-                let sampler = self.energy.bspline().sampler(pick(phi, &live));
-                self.warp_by_blocks(&sampler, pick(&problem.coeffs, &live))
-            }
+            None => self
+                .energy
+                .bspline()
+                .interpolate(pick(&problem.coeffs, &live), pick(phi, &live)),
         };
         let current = problem.local_energies_of(pick(phi, &live), reference_warp, &live, None);
         for (&i, e) in live.iter().zip(current) {
@@ -642,33 +641,21 @@ impl Ipalm {
         }
     }
 
-    /// `T[c, φ]` for the coefficients `c` of whole frames (`[n, C_tot, H, W]`), sampled
-    /// block by block as the feature steps' trials sample it.
+    /// SPEC §6 step 3 for the frames `ks` (in `1..K`, no two adjacent) at once:
+    /// `Q_k(x) = (K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}])`, one gradient step per
+    /// trial `L`, each channel block with its own `L` and search (`Q_k` restricted to the
+    /// block's channels, still divided by `C_tot`).
     ///
-    /// A sampler's result for a channel can depend on how many channels it reads at once
-    /// (the fused kernels take a planar or a channels-last path, the composed one a scalar or
-    /// a row gather; their sums round differently). A `T[f_k, φ_k]` carried from a trial and
-    /// one computed afresh must be the same values (SPEC §6's decisions compare them), so
-    /// every such warp of a whole frame goes through here. The prefilter does not have this
-    /// problem: each channel's lines are solved alike whatever the tensor holds.
-    fn warp_by_blocks(&self, sampler: &Sampler, coeffs: Tensor<4>) -> Tensor<4> {
-        let blocks = self.layout.blocks();
-        if blocks.len() == 1 {
-            return sampler.sample(coeffs);
-        }
-        let parts = blocks
-            .iter()
-            .map(|block| {
-                let (start, len) = (block.channels.start, block.channels.len());
-                sampler.sample(coeffs.clone().narrow(1, start, len))
-            })
-            .collect();
-        Tensor::cat(parts, 1)
-    }
-
-    /// SPEC §6 step 3 for the frames `ks` (in `1..K`, no two adjacent) at once, block by
-    /// block: `Q_k(x) = (K/δ)(D[f_{k−1}, x, φ_k] + D[x, f_{k+1}, φ_{k+1}])` restricted to
-    /// the block's channels (still divided by `C_tot`), one gradient step per trial `L`.
+    /// The blocks' searches run in lockstep on whole frames: `Q_k` is a sum over channels,
+    /// so one forward and one backward give every block's value and gradient, and a round's
+    /// trial is one frame in which each block takes its own trial step (a block already
+    /// decided takes its accepted step again, the same values bit for bit). Each block is
+    /// decided by its own float64 sums ([`Grid::decision_distance2_blocks`]); the prefilter
+    /// and the channels-last evaluation give each channel the same values whatever other
+    /// channels the frame holds, so the accepted frame, its `P x` and its `T[x, φ_k]` are
+    /// those of the round that accepted its last block, with no joining of blocks. (Searched
+    /// block by block, each block was a warp, a backward and a `cat` into the frame of its
+    /// own: the `cat`s alone were 6 % of a deep sweep's feature steps.)
     ///
     /// `next`, when given, holds `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` of every step (the
     /// previous sweep's feature step of `k + 1` computed them; neither has changed since);
@@ -685,6 +672,13 @@ impl Ipalm {
         let bt = self.config.backtracking;
         let slack = self.slack();
         let c_tot = self.layout.channels();
+        let blocks: Vec<Range<usize>> = self
+            .layout
+            .blocks()
+            .iter()
+            .map(|block| block.channels.clone())
+            .collect();
+        let nb = blocks.len();
         let delta = self.energy.params().delta;
         let steps = state.steps() as f64;
         let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
@@ -695,95 +689,113 @@ impl Ipalm {
             f_k.clone()
         };
         // φ_k (stored at k − 1) is already this sweep's, φ_{k+1} (at k) still the previous
-        // one. Both stay fixed for the whole step: φ_k's stencil serves every block and
-        // trial, and T[f_{k+1}, φ_{k+1}] does not depend on f_k at all.
+        // one. Both stay fixed for the whole step: φ_k's stencil serves every trial, and
+        // T[f_{k+1}, φ_{k+1}] does not depend on f_k at all.
         let phis = take(&state.phi, ks, -1);
         let sampler = bspline.sampler(phis.clone());
         let next = next.unwrap_or_else(|| {
             let coeffs = bspline.coefficients(take(&state.f, ks, 1));
-            let sampler = bspline.sampler(take(&state.phi, ks, 0));
-            let warped = self.warp_by_blocks(&sampler, coeffs.clone());
+            let warped = bspline
+                .sampler(take(&state.phi, ks, 0))
+                .sample(coeffs.clone());
             FrameProducts { coeffs, warped }
         });
         let before = take(&state.f, ks, -1);
 
-        let mut records: Vec<FeatureStep> = (0..n)
-            .map(|_| FeatureStep {
-                lipschitz: Vec::new(),
-                trials: Vec::new(),
-                dropped: Vec::new(),
-                residual_norm2: Some((0.0, 0.0)),
-            })
-            .collect();
-        // Each item's blocks of f_new, and the accepted trials' P x and T[x, φ_k] block by
-        // block (`None` once a block gave up).
-        let mut blocks: Vec<Vec<Tensor<4>>> = vec![Vec::new(); n];
-        let mut own: Vec<Option<(Vec<Tensor<4>>, Vec<Tensor<4>>)>> =
-            vec![Some((Vec::new(), Vec::new())); n];
-        for (b, block) in self.layout.blocks().iter().enumerate() {
-            let (start, len) = (block.channels.start, block.channels.len());
-            let prev = before.clone().narrow(1, start, len);
-            let next_block = next.warped.clone().narrow(1, start, len);
-            let x_tilde = f_tilde.clone().narrow(1, start, len).detach();
-            let leaf = x_tilde.clone().require_grad();
-            let warped = sampler.sample(bspline.coefficients(leaf.clone()));
-            let warped_tilde = warped.clone().detach();
-            // The squared norms of the residuals T[x̃, φ_k] − f_{k−1} and
-            // T[f_{k+1}, φ_{k+1}] − x̃ as the decisions sum them, once: they are also the
-            // values of Q's data terms, whose ops then only differentiate (the residuals are
-            // never tensors). The Q_k are independent: the gradient of their sum is each one's.
-            let moved = grid.decision_distance2_each(warped_tilde.clone(), prev.clone());
-            let fixed = grid.decision_distance2_each(next_block.clone(), x_tilde.clone());
-            let q = (data_term_given(warped, prev.clone(), c_tot, moved.clone())
-                + data_term_given(next_block.clone(), leaf.clone(), c_tot, fixed.clone()))
-            .sum()
-            .mul_scalar(steps / delta);
-            let grads = q.backward();
-            let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
-            let [moved, fixed, grad_norm2] =
-                read_groups(grid, [moved, fixed, grid.decision_norm2_each(grad.clone())]);
-            let q_tilde: Vec<f64> = (0..n).map(|i| (moved[i] + fixed[i]) * scale).collect();
-            if let Some(i) =
-                (0..n).find(|&i| !(q_tilde[i].is_finite() && grad_norm2[i].is_finite()))
-            {
-                return Err(Error::NonFinite {
-                    what: format!(
-                        "feature step k = {}, block {b}: Q = {}, |grad Q|^2 = {}",
-                        ks[i], q_tilde[i], grad_norm2[i]
+        let x_tilde = f_tilde.detach();
+        let leaf = x_tilde.clone().require_grad();
+        let warped = sampler.sample(bspline.coefficients(leaf.clone()));
+        let warped_tilde = warped.clone().detach();
+        // The squared norms of the residuals T[x̃, φ_k] − f_{k−1} and T[f_{k+1}, φ_{k+1}] − x̃
+        // of each block as the decisions sum them, once: summed over the blocks they are also
+        // the values of Q's data terms, whose ops then only differentiate (the residuals are
+        // never tensors). The Q_k are independent: the gradient of their sum is each one's.
+        let moved = grid.decision_distance2_blocks(warped_tilde.clone(), before.clone(), &blocks);
+        let fixed = grid.decision_distance2_blocks(next.warped.clone(), x_tilde.clone(), &blocks);
+        let per_item = |t: &Tensor<1>| t.clone().reshape([n, nb]).sum_dim(1).reshape([n]);
+        let q = (data_term_given(warped, before.clone(), c_tot, per_item(&moved))
+            + data_term_given(next.warped.clone(), leaf.clone(), c_tot, per_item(&fixed)))
+        .sum()
+        .mul_scalar(steps / delta);
+        let grads = q.backward();
+        let grad = leaf.grad(&grads).expect("Q depends on f_k").autodiff();
+        // Entry `i·nb + b`: item i, block b.
+        let [moved, fixed, grad_norm2] = read_groups(
+            grid,
+            [
+                moved,
+                fixed,
+                grid.decision_norm2_blocks(grad.clone(), &blocks),
+            ],
+        );
+        let q_tilde: Vec<f64> = (0..n * nb).map(|e| (moved[e] + fixed[e]) * scale).collect();
+        if let Some(e) =
+            (0..n * nb).find(|&e| !(q_tilde[e].is_finite() && grad_norm2[e].is_finite()))
+        {
+            return Err(Error::NonFinite {
+                what: format!(
+                    "feature step k = {}, block {}: Q = {}, |grad Q|^2 = {}",
+                    ks[e / nb],
+                    e % nb,
+                    q_tilde[e],
+                    grad_norm2[e]
+                ),
+            });
+        }
+
+        // Each entry's residual norms of its last trial (the accepted one's once decided) and
+        // accepted L; each item's last trial frame and, once every block accepted, that
+        // frame with its P x and T[x, φ_k].
+        let mut norms = vec![(f64::NAN, f64::NAN); n * nb];
+        let mut accepted: Vec<Option<f64>> = vec![None; n * nb];
+        let mut last: Vec<Option<Tensor<4>>> = vec![None; n];
+        let mut whole: Vec<Option<(Tensor<4>, FrameProducts)>> = vec![None; n];
+        let mut searches = Lockstep::new(
+            (0..n * nb)
+                .map(|e| Some(SearchRun::new(&bt, state.l_f[ks[e / nb] - 1][e % nb])))
+                .collect(),
+        );
+        while let Some(trial) = searches.round() {
+            let items = indices(n, |i| (0..nb).any(|b| trial[i * nb + b].is_some()));
+            // A block out of trials takes x̃ (L = ∞): its values are replaced below.
+            let l: Vec<f64> = items
+                .iter()
+                .flat_map(|&i| (i * nb..(i + 1) * nb).map(|e| trial[e].or(accepted[e])))
+                .map(|l| l.unwrap_or(f64::INFINITY))
+                .collect();
+            let candidates = descend(pick(&x_tilde, &items), pick(&grad, &items), &l, &blocks);
+            let coeffs = bspline.coefficients(candidates.clone());
+            let trial_warped = if items.len() == n {
+                sampler.sample(coeffs.clone())
+            } else {
+                bspline.sampler(pick(&phis, &items)).sample(coeffs.clone())
+            };
+            let [to_prev, to_next, moved] = read_groups(
+                grid,
+                [
+                    grid.decision_distance2_blocks(
+                        trial_warped.clone(),
+                        pick(&before, &items),
+                        &blocks,
                     ),
-                });
-            }
-            // Each item's residual norms of its last trial: the accepted one's once decided.
-            let mut norms = vec![(f64::NAN, f64::NAN); n];
-            let mut searches = Lockstep::new(
-                ks.iter()
-                    .map(|&k| Some(SearchRun::new(&bt, state.l_f[k - 1][b])))
-                    .collect(),
+                    grid.decision_distance2_blocks(
+                        pick(&next.warped, &items),
+                        candidates.clone(),
+                        &blocks,
+                    ),
+                    grid.decision_distance2_blocks(
+                        trial_warped.clone(),
+                        pick(&warped_tilde, &items),
+                        &blocks,
+                    ),
+                ],
             );
-            while let Some(trial) = searches.round() {
-                let items = indices(n, |i| trial[i].is_some());
-                let l: Vec<f64> = items.iter().filter_map(|&i| trial[i]).collect();
-                let candidates = descend(pick(&x_tilde, &items), pick(&grad, &items), &l);
-                let coeffs = bspline.coefficients(candidates.clone());
-                let trial_warped = if items.len() == n {
-                    sampler.sample(coeffs.clone())
-                } else {
-                    bspline.sampler(pick(&phis, &items)).sample(coeffs.clone())
-                };
-                let [to_prev, to_next, moved] = read_groups(
-                    grid,
-                    [
-                        grid.decision_distance2_each(trial_warped.clone(), pick(&prev, &items)),
-                        grid.decision_distance2_each(pick(&next_block, &items), candidates.clone()),
-                        grid.decision_distance2_each(
-                            trial_warped.clone(),
-                            pick(&warped_tilde, &items),
-                        ),
-                    ],
-                );
-                for (j, (&i, &l)) in items.iter().zip(&l).enumerate() {
-                    norms[i] = (to_prev[j], to_next[j]);
-                    let q_new = (to_prev[j] + to_next[j]) * scale;
+            for (j, &i) in items.iter().enumerate() {
+                for b in 0..nb {
+                    let (e, at) = (i * nb + b, j * nb + b);
+                    let Some(l) = trial[e] else { continue };
+                    norms[e] = (to_prev[at], to_next[at]);
+                    let q_new = (to_prev[at] + to_next[at]) * scale;
                     // x_new − x̃ = d = −∇Q/L: ⟨∇Q, d⟩ = −‖∇Q‖²/L, ‖d‖² = ‖∇Q‖²/L². Q is
                     // quadratic in f_k (T is linear in it), so Q(x̃ + d) − Q(x̃) − ⟨∇Q, d⟩ is
                     // exactly scale·(‖T[d, φ_k]‖² + ‖d‖²), with T[d, φ_k] = T[x_new, φ_k] −
@@ -793,62 +805,87 @@ impl Ipalm {
                     // trial failed, L doubled until the decrease fell below float64's
                     // resolution of Q and the frame's features froze for the rest of the
                     // level (seen at 64², sweep 48).
-                    let d2 = grad_norm2[i] / (l * l);
-                    let remainder = scale * (moved[j] + d2);
+                    let d2 = grad_norm2[e] / (l * l);
+                    let remainder = scale * (moved[at] + d2);
                     let outcome =
-                        if bt.accepts_remainder(q_new, q_tilde[i], remainder, d2, l, slack) {
-                            Trial::Accepted((
-                                item(&candidates, j),
-                                item(&coeffs, j),
-                                item(&trial_warped, j),
-                            ))
+                        if bt.accepts_remainder(q_new, q_tilde[e], remainder, d2, l, slack) {
+                            accepted[e] = Some(l);
+                            Trial::Accepted(())
                         } else {
                             Trial::Rejected
                         };
-                    searches.record(i, outcome);
+                    searches.record(e, outcome);
                 }
+                let candidate = item(&candidates, j);
+                if accepted[i * nb..(i + 1) * nb].iter().all(Option::is_some) {
+                    let products = FrameProducts {
+                        coeffs: item(&coeffs, j),
+                        warped: item(&trial_warped, j),
+                    };
+                    whole[i] = Some((candidate.clone(), products));
+                }
+                last[i] = Some(candidate);
             }
-            for (i, search) in searches.finish().into_iter().enumerate() {
-                let search = search.expect("every frame searches");
-                let record = &mut records[i];
+        }
+        let mut searched = searches.finish().into_iter();
+        let mut frames = Vec::with_capacity(n);
+        let mut records = Vec::with_capacity(n);
+        let mut own = Vec::with_capacity(n);
+        for i in 0..n {
+            let mut record = FeatureStep {
+                lipschitz: Vec::new(),
+                trials: Vec::new(),
+                dropped: Vec::new(),
+                residual_norm2: Some((0.0, 0.0)),
+            };
+            for b in 0..nb {
+                let search = searched
+                    .next()
+                    .flatten()
+                    .expect("every block of every frame searches");
+                let e = i * nb + b;
                 record.dropped.push(search.accepted.is_none());
                 record.lipschitz.push(search.lipschitz);
                 record.trials.push(search.trials);
-                record.residual_norm2 = match (record.residual_norm2, &search.accepted) {
-                    (Some((moved, fixed)), Some(_)) => {
-                        Some((moved + norms[i].0, fixed + norms[i].1))
+                record.residual_norm2 = match (record.residual_norm2, search.accepted) {
+                    (Some((moved, fixed)), Some(())) => {
+                        Some((moved + norms[e].0, fixed + norms[e].1))
                     }
                     _ => None,
                 };
-                // A block whose search gave up keeps its current values.
-                blocks[i].push(match search.accepted {
-                    Some((candidate, coeffs, warped)) => {
-                        if let Some((c, w)) = own[i].as_mut() {
-                            c.push(coeffs);
-                            w.push(warped);
-                        }
-                        candidate
-                    }
-                    None => {
-                        own[i] = None;
-                        item(&f_k, i).narrow(1, start, len)
-                    }
-                });
+            }
+            records.push(record);
+            match whole[i].take() {
+                Some((frame, products)) => {
+                    frames.push(frame);
+                    own.push(Some(products));
+                }
+                None => {
+                    // A block whose search gave up keeps its current values: the frame is
+                    // joined from the accepted blocks of the last trial and f_k's others.
+                    let last = last[i].take().expect("every frame ran a trial");
+                    let parts = blocks
+                        .iter()
+                        .enumerate()
+                        .map(|(b, block)| {
+                            let from = if accepted[i * nb + b].is_some() {
+                                last.clone()
+                            } else {
+                                item(&f_k, i)
+                            };
+                            from.narrow(1, block.start, block.len())
+                        })
+                        .collect();
+                    frames.push(Tensor::cat(parts, 1));
+                    own.push(None);
+                }
             }
         }
         Ok(FeatureSteps {
-            frames: blocks.into_iter().map(|b| Tensor::cat(b, 1)).collect(),
+            frames,
             steps: records,
             next,
-            own: own
-                .into_iter()
-                .map(|o| {
-                    o.map(|(coeffs, warped)| FrameProducts {
-                        coeffs: bspline.join(coeffs),
-                        warped: Tensor::cat(warped, 1),
-                    })
-                })
-                .collect(),
+            own,
         })
     }
 }

@@ -1,6 +1,6 @@
 //! The elementwise updates of SPEC §6's steps as custom Burn ops (Burn 0.22's
 //! `#[backend_extension]`): the inertial extrapolation `x + β(x − x_prev)` (`f̃` and `φ̃`) and
-//! a feature trial's gradient step `x̃ − ∇Q/L`.
+//! a feature trial's gradient step `x̃ − ∇Q/L`, one `L` per channel block.
 //!
 //! Composed, the extrapolation is three elementwise ops (difference, scale, sum) and the
 //! gradient step two, each a pass over the frame into a fresh output on one core (flex runs
@@ -21,6 +21,8 @@
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
+use std::ops::Range;
+
 use burn::tensor::{Scalar, Shape, Tensor, TensorData};
 
 /// The updates' primitives.
@@ -41,17 +43,15 @@ pub trait UpdateOps: Backend {
             Self::float_mul_scalar(Self::float_sub(x.clone(), previous), Scalar::Float(beta));
         Self::float_add(x, step)
     }
-    /// `x_n − g_n·s_n` for each item `n`: `x`, `g` and the output `[N, …]`, `s` `[N]` in their
-    /// dtype.
+    /// `x_nc − g_nc·s_nc` for each item `n` and channel `c`: `x`, `g` and the output
+    /// `[N, C, H, W]`, `s` `[N·C]` in their dtype.
     fn descend(
         x: FloatTensor<Self>,
         g: FloatTensor<Self>,
         s: FloatTensor<Self>,
     ) -> FloatTensor<Self> {
         let shape = x.shape();
-        let mut s_shape = vec![1; shape.num_dims()];
-        s_shape[0] = shape[0];
-        let s = Self::float_reshape(s, Shape::from(s_shape));
+        let s = Self::float_reshape(s, Shape::new([shape[0], shape[1], 1, 1]));
         Self::float_sub(x, Self::float_mul(g, s))
     }
 }
@@ -80,27 +80,47 @@ pub fn extrapolate(x: Tensor<4>, previous: Tensor<4>, beta: f64) -> Tensor<4> {
     ))
 }
 
-/// The gradient step `x_n − g_n / L_n` of each item `n` (SPEC §6 step 3's trial): as the
-/// composed `x − g·(1/L)` with `1/L` rounded to the tensors' precision, bit for bit.
+/// The gradient step `x − g / L` of each item and channel block (SPEC §6 step 3's trial,
+/// every block of a frame in one pass): as the composed `x − g·(1/L)` of each block with
+/// `1/L` rounded to the tensors' precision, bit for bit. `L = ∞` leaves a block at `x`.
 ///
 /// # Shapes
-/// - `x`, `g`, output: `[N, C, H, W]`; `lipschitz`: `N` values
+/// - `x`, `g`, output: `[N, C, H, W]`; `blocks`: ranges of channels covering `0..C`;
+///   `lipschitz`: `N · blocks.len()` values, item-major
 ///
 /// # Panics
 ///
-/// If the shapes differ or `lipschitz` does not hold one value per item.
-pub fn descend(x: Tensor<4>, g: Tensor<4>, lipschitz: &[f64]) -> Tensor<4> {
+/// If the shapes differ, the blocks do not cover the channels, or `lipschitz` does not hold
+/// one value per item and block.
+pub fn descend(
+    x: Tensor<4>,
+    g: Tensor<4>,
+    lipschitz: &[f64],
+    blocks: &[Range<usize>],
+) -> Tensor<4> {
     assert_eq!(x.dims(), g.dims(), "gradient step: shapes differ");
+    let [n, c, _, _] = x.dims();
+    assert!(
+        blocks.first().is_some_and(|b| b.start == 0)
+            && blocks.last().is_some_and(|b| b.end == c)
+            && blocks.windows(2).all(|w| w[0].end == w[1].start),
+        "gradient step: blocks {blocks:?} do not cover {c} channels"
+    );
     assert_eq!(
         lipschitz.len(),
-        x.dims()[0],
-        "gradient step: one L per item"
+        n * blocks.len(),
+        "gradient step: one L per item and block"
     );
-    let inverse: Vec<f64> = lipschitz.iter().map(|l| 1.0 / l).collect();
-    let s = Tensor::<1>::from_data(
-        TensorData::new(inverse, [lipschitz.len()]),
-        (&x.device(), x.dtype()),
-    );
+    let inverse: Vec<f64> = lipschitz
+        .chunks(blocks.len())
+        .flat_map(|per_block| {
+            per_block
+                .iter()
+                .zip(blocks)
+                .flat_map(|(l, block)| std::iter::repeat_n(1.0 / l, block.len()))
+        })
+        .collect();
+    let s = Tensor::<1>::from_data(TensorData::new(inverse, [n * c]), (&x.device(), x.dtype()));
     Tensor::from_dispatch(Dispatch::descend(
         x.detach().into_dispatch(),
         g.detach().into_dispatch(),
@@ -108,8 +128,9 @@ pub fn descend(x: Tensor<4>, g: Tensor<4>, lipschitz: &[f64]) -> Tensor<4> {
     ))
 }
 
-/// `out_i = f(a_i, b_i, s_n)` for the values `i` of item `n` (`a`, `b` and `out` hold `s.len()`
-/// items of equal length), written in chunks split over the cores.
+/// `out_i = f(a_i, b_i, s_m)` for the values `i` of segment `m` (`a`, `b` and `out` hold
+/// `s.len()` segments of equal length: items, or planes), written in chunks split over the
+/// cores.
 #[cfg(any(feature = "flex", test))]
 fn combine<T: Copy + Send + Sync>(
     a: &[T],
@@ -121,8 +142,13 @@ fn combine<T: Copy + Send + Sync>(
     /// Values per task.
     const CHUNK: usize = 1 << 14;
     assert_eq!(a.len(), b.len(), "update: lengths differ");
-    let per_item = a.len() / s.len().max(1);
-    assert_eq!(per_item * s.len(), a.len(), "update: {} factors", s.len());
+    let per_segment = a.len() / s.len().max(1);
+    assert_eq!(
+        per_segment * s.len(),
+        a.len(),
+        "update: {} factors",
+        s.len()
+    );
     // Written chunk by chunk on the pool without zeroing first (a zeroed frame was a serial
     // memset on the solver's thread).
     let mut out = Vec::<T>::with_capacity(a.len());
@@ -132,12 +158,12 @@ fn combine<T: Copy + Send + Sync>(
         .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
         .enumerate()
         .for_each(|(chunk, (out, (a, b)))| {
-            // The chunk's runs of one item each, so the inner loop vectorises.
+            // The chunk's runs of one segment each, so the inner loop vectorises.
             let (first, mut from) = (chunk * CHUNK, 0);
             while from < out.len() {
-                let item = (first + from) / per_item;
-                let to = ((item + 1) * per_item - first).min(out.len());
-                let factor = s[item];
+                let segment = (first + from) / per_segment;
+                let to = ((segment + 1) * per_segment - first).min(out.len());
+                let factor = s[segment];
                 for ((o, &x), &y) in out[from..to].iter_mut().zip(&a[from..to]).zip(&b[from..to]) {
                     o.write(f(x, y, factor));
                 }
@@ -216,7 +242,7 @@ mod flex {
             let (x, g) = views(x, g, "gradient step");
             let s = HostView::new(s);
             assert!(
-                s.dtype() == x.dtype() && s.shape() == [x.shape()[0]],
+                s.dtype() == x.dtype() && s.shape() == [x.shape()[0] * x.shape()[1]],
                 "gradient step: factors {:?} {:?} for {:?} {:?}",
                 s.shape(),
                 s.dtype(),
@@ -266,7 +292,7 @@ mod tests {
     use super::combine;
 
     #[test]
-    fn every_value_takes_its_items_factor() {
+    fn every_value_takes_its_segments_factor() {
         // Items longer than a chunk and not a multiple of it, so chunks straddle items.
         let per_item = (1 << 14) + 7;
         let a: Vec<f32> = (0..3 * per_item).map(|i| (i % 13) as f32 * 0.5).collect();

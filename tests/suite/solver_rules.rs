@@ -928,7 +928,7 @@ fn a_sweep_stopped_between_blocks_goes_on_exactly(backend: Backend) {
 
 /// The steps' fused updates (`update_op`) are the composed chains they replace, bit for bit:
 /// the extrapolation `x + (x − x_prev)·β` and a feature trial's `x̃ − ∇Q·(1/L)`, one `L` per
-/// item, with items longer than the flex kernel's chunks.
+/// item and channel block, on planes that straddle the flex kernel's chunks.
 fn fused_updates_equal_the_composed_chains(backend: Backend) {
     use deepmorph::solver::update_op::{descend, extrapolate};
     let device = device(backend, Precision::F32, true);
@@ -948,16 +948,26 @@ fn fused_updates_equal_the_composed_chains(backend: Backend) {
         values(x.clone() + (x.clone() - previous.clone()).mul_scalar(beta)),
         "{backend:?}: extrapolation"
     );
-    let lipschitz = [3.7, 0.061];
-    let stepped = values(descend(x.clone(), g.clone(), &lipschitz));
-    let per_item = len / 2;
-    for (i, l) in lipschitz.iter().enumerate() {
-        let item = |t: &Tensor<4>| t.clone().narrow(0, i, 1);
-        let composed = values(item(&x) - item(&g).mul_scalar(1.0 / l));
+    // One L per item and channel block; L = ∞ leaves a block at x.
+    let blocks = [0..1, 1..3];
+    let lipschitz = [3.7, 0.061, f64::INFINITY, 12.5];
+    let stepped = descend(x.clone(), g.clone(), &lipschitz, &blocks);
+    for (e, l) in lipschitz.iter().enumerate() {
+        let (i, block) = (e / 2, blocks[e % 2].clone());
+        let part = |t: &Tensor<4>| {
+            t.clone()
+                .narrow(0, i, 1)
+                .narrow(1, block.start, block.len())
+        };
+        let composed = if l.is_finite() {
+            values(part(&x) - part(&g).mul_scalar(1.0 / l))
+        } else {
+            values(part(&x))
+        };
         assert_eq!(
-            stepped[i * per_item..(i + 1) * per_item],
-            composed[..],
-            "{backend:?}: gradient step of item {i}"
+            values(part(&stepped)),
+            composed,
+            "{backend:?}: gradient step of item {i}, channels {block:?}"
         );
     }
 }

@@ -245,25 +245,6 @@ impl BSpline {
         }
     }
 
-    /// Coefficients of consecutive channel blocks joined into those of the whole frame
-    /// (`Tensor::cat` along the channels, the same values). Where the backend keeps
-    /// coefficients channels-last ([`Grid::channels_last_coefficients`]) the joined ones
-    /// are laid out so too, as [`coefficients`](Self::coefficients) of the whole frame
-    /// would be: every later evaluation reads them in place instead of transposing them.
-    ///
-    /// # Shapes
-    /// - `blocks`: `[N, C_b, H, W]` each; output `[N, Σ C_b, H, W]`
-    pub fn join(&self, blocks: Vec<Tensor<4>>) -> Tensor<4> {
-        if !self.grid.channels_last_coefficients() {
-            return Tensor::cat(blocks, 1);
-        }
-        let last = blocks
-            .into_iter()
-            .map(|b| b.permute([0, 2, 3, 1]))
-            .collect();
-        Tensor::cat(last, 3).permute([0, 3, 1, 2])
-    }
-
     /// The warp `T[f, φ] = interpolate(P f, φ)`.
     ///
     /// # Shapes

@@ -347,8 +347,8 @@ mod tests {
         FlexTensor::from_data(TensorData::new(values, [1, c, 5, 6]))
     }
 
-    /// The forward prefilter of many channels leaves them channels-last; joining an RGB block
-    /// and such a block as `BSpline::join` does keeps the whole frame so, and the kernels
+    /// The forward prefilter of many channels leaves them channels-last; joined with an RGB
+    /// block along the channels of that layout the whole frame stays so, and the kernels
     /// read its many-channel blocks in place (few channels are copied planar).
     #[test]
     fn coefficients_stay_channels_last_through_a_join() {
