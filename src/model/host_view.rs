@@ -24,6 +24,24 @@ impl HostView {
         Self { tensor }
     }
 
+    /// The views of two tensors of one shape and dtype, for the kernel `what`.
+    ///
+    /// # Panics
+    ///
+    /// If their shapes or dtypes differ.
+    pub(crate) fn pair(a: FlexTensor, b: FlexTensor, what: &str) -> (Self, Self) {
+        let (a, b) = (Self::new(a), Self::new(b));
+        assert!(
+            a.shape() == b.shape() && a.dtype() == b.dtype(),
+            "{what}: {:?} {:?} against {:?} {:?}",
+            a.shape(),
+            a.dtype(),
+            b.shape(),
+            b.dtype()
+        );
+        (a, b)
+    }
+
     /// The shape.
     pub(crate) fn shape(&self) -> Vec<usize> {
         self.tensor.layout().shape().to_vec()

@@ -650,12 +650,13 @@ impl Ipalm {
     /// so one forward and one backward give every block's value and gradient, and a round's
     /// trial is one frame in which each block takes its own trial step (a block already
     /// decided takes its accepted step again, the same values bit for bit). Each block is
-    /// decided by its own float64 sums ([`Grid::decision_distance2_blocks`]); the prefilter
-    /// and the channels-last evaluation give each channel the same values whatever other
-    /// channels the frame holds, so the accepted frame, its `P x` and its `T[x, φ_k]` are
-    /// those of the round that accepted its last block, with no joining of blocks. (Searched
+    /// decided by its own float64 sums
+    /// ([`crate::model::grid::Grid::decision_distance2_blocks`]); the prefilter and the
+    /// channels-last evaluation give each channel the same values whatever other channels
+    /// the frame holds, so the accepted frame, its `P x` and its `T[x, φ_k]` are those of
+    /// the round that accepted its last block, with no joining of blocks. (Searched
     /// block by block, each block was a warp, a backward and a `cat` into the frame of its
-    /// own: the `cat`s alone were 6 % of a deep sweep's feature steps.)
+    /// own: the `cat`s alone were 7.5 % of a deep sweep's feature steps.)
     ///
     /// `next`, when given, holds `P f_{k+1}` and `T[f_{k+1}, φ_{k+1}]` of every step (the
     /// previous sweep's feature step of `k + 1` computed them; neither has changed since);

@@ -128,79 +128,19 @@ pub fn descend(
     ))
 }
 
-/// `out_i = f(a_i, b_i, s_m)` for the values `i` of segment `m` (`a`, `b` and `out` hold
-/// `s.len()` segments of equal length: items, or planes), written in chunks split over the
-/// cores.
-#[cfg(any(feature = "flex", test))]
-fn combine<T: Copy + Send + Sync>(
-    a: &[T],
-    b: &[T],
-    s: &[T],
-    f: impl Fn(T, T, T) -> T + Sync,
-) -> Vec<T> {
-    use rayon::prelude::*;
-    /// Values per task.
-    const CHUNK: usize = 1 << 14;
-    assert_eq!(a.len(), b.len(), "update: lengths differ");
-    let per_segment = a.len() / s.len().max(1);
-    assert_eq!(
-        per_segment * s.len(),
-        a.len(),
-        "update: {} factors",
-        s.len()
-    );
-    // Written chunk by chunk on the pool without zeroing first (a zeroed frame was a serial
-    // memset on the solver's thread).
-    let mut out = Vec::<T>::with_capacity(a.len());
-    let spare = &mut out.spare_capacity_mut()[..a.len()];
-    spare
-        .par_chunks_mut(CHUNK)
-        .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
-        .enumerate()
-        .for_each(|(chunk, (out, (a, b)))| {
-            // The chunk's runs of one segment each, so the inner loop vectorises.
-            let (first, mut from) = (chunk * CHUNK, 0);
-            while from < out.len() {
-                let segment = (first + from) / per_segment;
-                let to = ((segment + 1) * per_segment - first).min(out.len());
-                let factor = s[segment];
-                for ((o, &x), &y) in out[from..to].iter_mut().zip(&a[from..to]).zip(&b[from..to]) {
-                    o.write(f(x, y, factor));
-                }
-                from = to;
-            }
-        });
-    // SAFETY: every one of the `a.len()` values was written above.
-    unsafe { out.set_len(a.len()) };
-    out
-}
-
 #[cfg(feature = "flex")]
 mod flex {
     use burn::backend::Flex;
     use burn::backend::flex::FlexTensor;
     use burn::tensor::{DType, TensorData};
 
-    use super::{UpdateOps, combine};
-    use crate::model::cpu::Real;
+    use super::UpdateOps;
+    use crate::model::cpu::{Real, combine};
     use crate::model::host_view::HostView;
 
     trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
     impl Kernel for f32 {}
     impl Kernel for f64 {}
-
-    fn views(a: FlexTensor, b: FlexTensor, what: &str) -> (HostView, HostView) {
-        let (a, b) = (HostView::new(a), HostView::new(b));
-        assert!(
-            a.shape() == b.shape() && a.dtype() == b.dtype(),
-            "{what}: {:?} {:?} against {:?} {:?}",
-            a.shape(),
-            a.dtype(),
-            b.shape(),
-            b.dtype()
-        );
-        (a, b)
-    }
 
     fn extrapolate_typed<T: Kernel>(x: &HostView, previous: &HostView, beta: f64) -> TensorData {
         let out = combine(
@@ -234,12 +174,12 @@ mod flex {
 
     impl UpdateOps for Flex {
         fn extrapolate(x: FlexTensor, previous: FlexTensor, beta: f64) -> FlexTensor {
-            let (x, previous) = views(x, previous, "extrapolation");
+            let (x, previous) = HostView::pair(x, previous, "extrapolation");
             FlexTensor::from_data(typed!(x.dtype(), extrapolate_typed(&x, &previous, beta)))
         }
 
         fn descend(x: FlexTensor, g: FlexTensor, s: FlexTensor) -> FlexTensor {
-            let (x, g) = views(x, g, "gradient step");
+            let (x, g) = HostView::pair(x, g, "gradient step");
             let s = HostView::new(s);
             assert!(
                 s.dtype() == x.dtype() && s.shape() == [x.shape()[0] * x.shape()[1]],
@@ -283,25 +223,6 @@ mod autodiff {
             let (g, _) = g.into_parts();
             let (s, _) = s.into_parts();
             FloatTensor::<Self>::new(B::descend(x, g, s))
-        }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::combine;
-
-    #[test]
-    fn every_value_takes_its_segments_factor() {
-        // Items longer than a chunk and not a multiple of it, so chunks straddle items.
-        let per_item = (1 << 14) + 7;
-        let a: Vec<f32> = (0..3 * per_item).map(|i| (i % 13) as f32 * 0.5).collect();
-        let b: Vec<f32> = (0..3 * per_item).map(|i| (i % 7) as f32 * 0.25).collect();
-        let s = [2.0f32, -0.5, 3.0];
-        let out = combine(&a, &b, &s, |x, y, s| x - y * s);
-        assert_eq!(out.len(), a.len());
-        for (i, &v) in out.iter().enumerate() {
-            assert_eq!(v, a[i] - b[i] * s[i / per_item], "value {i}");
         }
     }
 }

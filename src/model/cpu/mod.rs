@@ -1,7 +1,8 @@
 //! What the native CPU kernels of the custom ops share, and nothing else: the element
 //! types they run in ([`Real`]), the AVX2 dispatch of their hot loops ([`has_avx2`],
 //! [`simd_dispatch`]), a pointer that tasks writing disjoint indices share ([`Shared`]),
-//! and vectorisable `ln`/`exp` ([`elementary`]). The kernels themselves live beside their
+//! an elementwise map of two slices with one factor per segment split over the cores
+//! ([`combine`]), and vectorisable `ln`/`exp` ([`elementary`]). The kernels themselves live beside their
 //! ops (`warp/host`, `separable/host`, the `*_op.rs` files); they import from here, never
 //! from each other.
 
@@ -305,6 +306,52 @@ macro_rules! simd_dispatch {
 }
 pub(crate) use simd_dispatch;
 
+/// `out_i = f(a_i, b_i, s_m)` for the values `i` of segment `m` (`a`, `b` and `out` hold
+/// `s.len()` segments of equal length: items, or planes), written in chunks split over the
+/// cores.
+#[cfg(any(feature = "flex", test))]
+pub(crate) fn combine<T: Copy + Send + Sync>(
+    a: &[T],
+    b: &[T],
+    s: &[T],
+    f: impl Fn(T, T, T) -> T + Sync,
+) -> Vec<T> {
+    /// Values per task.
+    const CHUNK: usize = 1 << 14;
+    assert_eq!(a.len(), b.len(), "update: lengths differ");
+    let per_segment = a.len() / s.len().max(1);
+    assert_eq!(
+        per_segment * s.len(),
+        a.len(),
+        "update: {} factors",
+        s.len()
+    );
+    // Written chunk by chunk on the pool without zeroing first (a zeroed frame was a serial
+    // memset on the solver's thread).
+    let mut out = Vec::<T>::with_capacity(a.len());
+    let spare = &mut out.spare_capacity_mut()[..a.len()];
+    spare
+        .par_chunks_mut(CHUNK)
+        .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
+        .enumerate()
+        .for_each(|(chunk, (out, (a, b)))| {
+            // The chunk's runs of one segment each, so the inner loop vectorises.
+            let (first, mut from) = (chunk * CHUNK, 0);
+            while from < out.len() {
+                let segment = (first + from) / per_segment;
+                let to = ((segment + 1) * per_segment - first).min(out.len());
+                let factor = s[segment];
+                for ((o, &x), &y) in out[from..to].iter_mut().zip(&a[from..to]).zip(&b[from..to]) {
+                    o.write(f(x, y, factor));
+                }
+                from = to;
+            }
+        });
+    // SAFETY: every one of the `a.len()` values was written above.
+    unsafe { out.set_len(a.len()) };
+    out
+}
+
 /// A raw pointer that tasks writing disjoint indices of one buffer may share.
 #[derive(Clone, Copy)]
 pub(crate) struct Shared<T>(pub(crate) *mut T);
@@ -406,3 +453,22 @@ simd_dispatch!(
         planar: &[T], c: usize, plane: usize, out: Shared<T>, pixels: std::ops::Range<usize>
     ) => transpose_pixels
 );
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_value_takes_its_segments_factor() {
+        // Items longer than a chunk and not a multiple of it, so chunks straddle items.
+        let per_item = (1 << 14) + 7;
+        let a: Vec<f32> = (0..3 * per_item).map(|i| (i % 13) as f32 * 0.5).collect();
+        let b: Vec<f32> = (0..3 * per_item).map(|i| (i % 7) as f32 * 0.25).collect();
+        let s = [2.0f32, -0.5, 3.0];
+        let out = combine(&a, &b, &s, |x, y, s| x - y * s);
+        assert_eq!(out.len(), a.len());
+        for (i, &v) in out.iter().enumerate() {
+            assert_eq!(v, a[i] - b[i] * s[i / per_item], "value {i}");
+        }
+    }
+}

@@ -152,15 +152,11 @@ mod flex {
     use burn::backend::Flex;
     use burn::backend::flex::FlexTensor;
     use burn::tensor::{DType, TensorData};
-    use rayon::prelude::*;
 
     use super::DistanceOps;
-    use crate::model::cpu::Real;
+    use crate::model::cpu::{Real, combine};
     use crate::model::decision::flex::{Term, Value, reduce};
     use crate::model::host_view::HostView;
-
-    /// Values per task of the gradient kernel.
-    const CHUNK: usize = 1 << 14;
 
     trait Kernel: Real + burn::tensor::Element + bytemuck::Pod + Value {}
     impl Kernel for f32 {}
@@ -182,31 +178,7 @@ mod flex {
 
     /// The host kernel of [`DistanceOps::scaled_difference`]: `s[item] · (a − b)`.
     fn host_scaled_difference<T: Kernel>(a: &[T], b: &[T], s: &[T]) -> Vec<T> {
-        assert_eq!(a.len(), b.len(), "scaled difference: lengths differ");
-        let n = s.len();
-        let per_item = a.len() / n.max(1);
-        assert_eq!(per_item * n, a.len(), "scaled difference: {n} factors");
-        // Written chunk by chunk on the pool without zeroing first: a zeroed buffer of a
-        // frame block was a serial memset (or page clearing) on the solver's thread.
-        let mut out = Vec::<T>::with_capacity(a.len());
-        let spare = &mut out.spare_capacity_mut()[..a.len()];
-        for (item, out) in spare.chunks_mut(per_item.max(1)).enumerate().take(n) {
-            let (a, b) = (
-                &a[item * per_item..(item + 1) * per_item],
-                &b[item * per_item..(item + 1) * per_item],
-            );
-            let factor = s[item];
-            out.par_chunks_mut(CHUNK)
-                .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
-                .for_each(|(out, (a, b))| {
-                    for ((o, &x), &y) in out.iter_mut().zip(a).zip(b) {
-                        o.write((x - y) * factor);
-                    }
-                });
-        }
-        // SAFETY: every one of the `n · per_item = len` values was written above.
-        unsafe { out.set_len(a.len()) };
-        out
+        combine(a, b, s, |x, y, factor| (x - y) * factor)
     }
 
     macro_rules! typed {
@@ -230,27 +202,14 @@ mod flex {
         TensorData::new(out, a.shape())
     }
 
-    fn views(a: FlexTensor, b: FlexTensor, what: &str) -> (HostView, HostView) {
-        let (a, b) = (HostView::new(a), HostView::new(b));
-        assert!(
-            a.shape() == b.shape() && a.dtype() == b.dtype(),
-            "{what}: {:?} {:?} against {:?} {:?}",
-            a.shape(),
-            a.dtype(),
-            b.shape(),
-            b.dtype()
-        );
-        (a, b)
-    }
-
     impl DistanceOps for Flex {
         fn distance2_each(a: FlexTensor, b: FlexTensor) -> FlexTensor {
-            let (a, b) = views(a, b, "squared distance");
+            let (a, b) = HostView::pair(a, b, "squared distance");
             FlexTensor::from_data(typed!(a.dtype(), distance2_typed(&a, &b)))
         }
 
         fn scaled_difference(a: FlexTensor, b: FlexTensor, s: FlexTensor) -> FlexTensor {
-            let (a, b) = views(a, b, "scaled difference");
+            let (a, b) = HostView::pair(a, b, "scaled difference");
             let s = HostView::new(s);
             assert_eq!(s.dtype(), a.dtype(), "scaled difference: factors' dtype");
             FlexTensor::from_data(typed!(a.dtype(), scaled_typed(&a, &b, &s)))
@@ -293,7 +252,8 @@ mod flex {
 
         #[test]
         fn the_scaled_difference_writes_every_value() {
-            let len = 2 * CHUNK + 5;
+            // Items longer than `combine`'s chunks of 2^14 values.
+            let len = 2 * (1 << 14) + 5;
             let a: Vec<f32> = (0..3 * len).map(|i| (i % 7) as f32).collect();
             let b: Vec<f32> = (0..3 * len).map(|i| (i % 5) as f32 * 0.5).collect();
             let s = [2.0f32, -0.25, 3.0];
