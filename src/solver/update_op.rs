@@ -19,10 +19,10 @@
 
 #![allow(deprecated)] // `NdArray` is deprecated upstream in favour of flex; it stays served.
 
-use burn::backend::tensor::FloatTensor;
-use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
 use std::ops::Range;
 
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
 use burn::tensor::{Scalar, Shape, Tensor, TensorData};
 
 /// The updates' primitives.
