@@ -43,8 +43,8 @@ impl Ipalm {
         if kind == SweepKind::Joint && cursor.next(false) == Block::Run {
             let a = anisotropy.unwrap_or_else(|| self.anisotropies(state));
             let all: Vec<usize> = (1..=k).collect();
-            let steps = self.deformation_steps(state, &all, a.clone(), None)?;
-            for (i, (phi, step)) in steps.into_iter().enumerate() {
+            let steps = self.deformation_steps(state, &all, a.clone(), None, false)?;
+            for (i, (phi, step, _)) in steps.into_iter().enumerate() {
                 state.apply_deformation(i + 1, phi, &step);
                 report.record_deformation(i + 1, step);
             }

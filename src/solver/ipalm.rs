@@ -772,12 +772,16 @@ impl Ipalm {
                     Block::Ran => {}
                     Block::Run => {
                         let a = anisotropy.clone().narrow(0, k - 1, 1);
-                        let [(phi_new, step)] = one_step(self.deformation_steps(
+                        let [(phi_new, step, products)] = one_step(self.deformation_steps(
                             state,
                             &[k],
                             a.clone(),
                             carried.take(),
+                            k == k_steps,
                         )?);
+                        if k == k_steps {
+                            carry.put(k, products);
+                        }
                         state.apply_deformation(k, phi_new, &step);
                         report.anisotropy.push(a);
                         report.record_deformation(k, step);
@@ -808,6 +812,11 @@ impl Ipalm {
                 }
             }
         }
+        if let Some(products) = carried {
+            // The deformation step of K did not run (a feature sweep): P f_K and
+            // T[f_K, φ_K] still hold for the next sweep's feature step of K − 1.
+            carry.put(k_steps, Some(products));
+        }
         Ok(SweepEnd::Done(report))
     }
 }
@@ -816,8 +825,10 @@ impl Ipalm {
 /// (`1..K`) whose feature step accepted a trial in every block, `P f_k` and `T[f_k, φ_k]`
 /// as that trial computed them. The next sweep's feature step of `k − 1` needs exactly these
 /// (`f_k` and `φ_k` change only after it), and its deformation step of `k = 1` too: one
-/// prefilter and one warp of all channels fewer per feature step. Costs `2·(K − 1)` frames
-/// of memory (SPEC §6 is unchanged: the values are the ones that would be recomputed).
+/// prefilter and one warp of all channels fewer per feature step. For `k = K` (`f_K = B`
+/// never changes) they are `P f_K` and the warp at the new `φ_K` that the safeguard of the
+/// deformation step of `K` evaluated. Costs `2·K` frames of memory (SPEC §6 is unchanged:
+/// the values are the ones that would be recomputed).
 ///
 /// The energy evaluated after a sweep ([`Ipalm::energy_after_carrying`]) leaves here the
 /// anisotropies `a[f_1] … a[f_K]` of the state it evaluated: the next sweep's deformation
@@ -851,7 +862,7 @@ impl SweepCarry {
         }
     }
 
-    /// What is held for `k`, removed (nothing for `k = K`: `f_K` has no feature step).
+    /// What is held for `k`, removed.
     fn take(&mut self, k: usize) -> Option<FrameProducts> {
         self.products.get_mut(k).and_then(Option::take)
     }

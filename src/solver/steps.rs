@@ -209,7 +209,8 @@ impl Deformations<'_> {
 
     /// The true local energies `e_k(φ) = K·R[φ, a_k] + (K/δ)·D[f_{k−1}, f_k, φ]` of the
     /// items `items`, summed for decisions (the safeguard's); `smooth`, when given, holds
-    /// `S_k(φ)` of each as a trial summed it.
+    /// `S_k(φ)` of each as a trial summed it. Also returns `T[f_k, φ]` of each,
+    /// `[items.len(), C, H, W]`.
     ///
     /// # Shapes
     /// - `phi`: `[items.len(), 2, H, W]`
@@ -218,13 +219,16 @@ impl Deformations<'_> {
         phi: Tensor<4>,
         items: &[usize],
         smooth: Option<Vec<f64>>,
-    ) -> Vec<LocalEnergy> {
+    ) -> (Vec<LocalEnergy>, Tensor<4>) {
         let warped = self
             .ipalm
             .energy
             .bspline()
             .interpolate(pick(&self.coeffs, items), phi.clone());
-        self.local_energies_of(phi, warped, items, smooth)
+        (
+            self.local_energies_of(phi, warped.clone(), items, smooth),
+            warped,
+        )
     }
 
     /// [`local_energies`](Self::local_energies) with `T[f_k, φ]` already computed.
@@ -390,6 +394,10 @@ struct Pending {
     current: Option<LocalEnergy>,
     /// `e_k` of the candidate, once the safeguard evaluated it.
     energy: Option<LocalEnergy>,
+    /// `T[f_k, φ_k]` and `T[f_k, ·]` of the candidate where the safeguard evaluated them
+    /// and the caller keeps them ([`Ipalm::deformation_steps`]'s `keep`).
+    current_warp: Option<Tensor<4>>,
+    candidate_warp: Option<Tensor<4>>,
 }
 
 impl Pending {
@@ -398,6 +406,7 @@ impl Pending {
         self.step.trials += search.trials;
         self.step.inadmissible_trials += search.inadmissible;
         self.candidate = search.accepted.map(|(phi, smooth)| (phi, Some(smooth)));
+        self.candidate_warp = None;
         self.accepted = search.lipschitz;
         self.doubled = search.lipschitz;
     }
@@ -421,6 +430,11 @@ impl Ipalm {
     /// feature step of `k − 1` in this sweep; neither changed since): the steps start from
     /// them instead of computing them again, with the same values.
     ///
+    /// With `keep`, each step also returns `P f_k` and `T[f_k, φ_new]` where its safeguard
+    /// evaluated them (the warp of `e_k` at the accepted candidate, or at `φ_k` for a dropped
+    /// step): for `k = K`, whose `f_K` never changes, they are what the next sweep's feature
+    /// step of `K − 1` reads.
+    ///
     /// # Shapes
     /// - `a`: `[ks.len(), H, W]`, the anisotropies `a_k`
     pub(super) fn deformation_steps(
@@ -429,7 +443,8 @@ impl Ipalm {
         ks: &[usize],
         a: Tensor<3>,
         carried: Option<FrameProducts>,
-    ) -> Result<Vec<(Tensor<4>, DeformationStep)>> {
+        keep: bool,
+    ) -> Result<Vec<(Tensor<4>, DeformationStep, Option<FrameProducts>)>> {
         let n = ks.len();
         let bspline = self.energy.bspline();
         let (coeffs, reference_warp) = match carried {
@@ -485,6 +500,8 @@ impl Ipalm {
                 doubled: 0.0,
                 current: None,
                 energy: None,
+                current_warp: None,
+                candidate_warp: None,
             })
             .collect();
         for (p, search) in pending
@@ -502,9 +519,11 @@ impl Ipalm {
                 &extrapolated,
                 &stored,
                 &streak,
+                keep,
                 &mut pending,
             )?;
         }
+        let coeffs = &problem.coeffs;
         Ok(pending
             .into_iter()
             .enumerate()
@@ -516,13 +535,21 @@ impl Ipalm {
                     // accepted.
                     Some((candidate, _)) => {
                         p.step.lipschitz = p.accepted;
-                        (candidate, p.step)
+                        let products = p.candidate_warp.map(|warped| FrameProducts {
+                            coeffs: item(coeffs, i),
+                            warped,
+                        });
+                        (candidate, p.step, products)
                     }
                     None => {
                         // SPEC §6, *Giving up*: keep φ_k and the L the step started from.
                         p.step.dropped = true;
                         p.step.lipschitz = stored[i];
-                        (item(&phi, i), p.step)
+                        let products = p.current_warp.map(|warped| FrameProducts {
+                            coeffs: item(coeffs, i),
+                            warped,
+                        });
+                        (item(&phi, i), p.step, products)
                     }
                 }
             })
@@ -543,6 +570,7 @@ impl Ipalm {
         extrapolated: &[bool],
         stored: &[f64],
         streak: &[u32],
+        keep: bool,
         pending: &mut [Pending],
     ) -> Result<()> {
         let n = pending.len();
@@ -558,9 +586,13 @@ impl Ipalm {
                 .bspline()
                 .interpolate(pick(&problem.coeffs, &live), pick(phi, &live)),
         };
-        let current = problem.local_energies_of(pick(phi, &live), reference_warp, &live, None);
-        for (&i, e) in live.iter().zip(current) {
+        let current =
+            problem.local_energies_of(pick(phi, &live), reference_warp.clone(), &live, None);
+        for (j, (&i, e)) in live.iter().zip(current).enumerate() {
             pending[i].current = Some(e);
+            if keep {
+                pending[i].current_warp = Some(item(&reference_warp, j));
+            }
         }
         // `e_k` of the candidates of the items `items`, each from its trial's `S_k` where it
         // has one.
@@ -570,9 +602,12 @@ impl Ipalm {
                 .map(|&i| pending[i].candidate.clone().expect("a candidate"))
                 .unzip();
             let smooth = smooth.into_iter().collect::<Option<Vec<f64>>>();
-            let energies = problem.local_energies(stack(candidates), items, smooth);
-            for (&i, e) in items.iter().zip(energies) {
+            let (energies, warped) = problem.local_energies(stack(candidates), items, smooth);
+            for (j, (&i, e)) in items.iter().zip(energies).enumerate() {
                 pending[i].energy = Some(e);
+                if keep {
+                    pending[i].candidate_warp = Some(item(&warped, j));
+                }
             }
         };
         evaluate(pending, &live);
