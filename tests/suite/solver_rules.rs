@@ -548,14 +548,14 @@ fn the_energy_after_a_sweep_reuses_the_sweeps_residuals(backend: Backend) {
 }
 
 /// A sweep that starts from what the previous one carried (`P f_k` and `T[f_k, φ_k]` of
-/// the accepted feature trials) leaves the same iterate, bit for bit, with the same
-/// decisions, as one that computes everything again: over feature-only and joint sweeps,
-/// with `K = 4` so that both the feature steps' `f_{k+1}` and the first deformation step
-/// take carried values, and with few and many feature channels. The batched schedule
-/// carries nothing.
+/// the accepted feature trials, and of `f_K` at the `φ_K` of the last deformation step of
+/// `K`) leaves the same iterate, bit for bit, with the same decisions, as one that computes
+/// everything again: over feature-only and joint sweeps, with `K = 4` so that the feature
+/// steps' `f_{k+1}` (`f_K` included) and the first deformation step take carried values,
+/// and with few and many feature channels. The batched schedule carries nothing.
 fn a_carried_sweep_equals_a_fresh_one(backend: Backend) {
-    // 4 feature channels, and 64 and 128 as VGG19's taps have, where the samplers take
-    // other paths than for a few channels (see `Ipalm::warp_by_blocks`).
+    // 4 feature channels, and 64 and 128 as VGG19's taps have, where the warps read the
+    // coefficients channels-last instead of planar.
     for channels in [4, 64, 128] {
         carried_and_fresh_sweeps(backend, channels);
     }

@@ -82,6 +82,35 @@ pub trait Real:
         // SAFETY: the caller's promise.
         unsafe { transpose8_scalar(src, src_stride, dst, dst_stride) }
     }
+    /// [`transpose8`](Self::transpose8) of the 16 × 8 block at `src` (16 rows): each of
+    /// the 8 destination rows gets 16 contiguous values. Where a type can, it writes them
+    /// around the caches (float32 on AVX, when every destination row starts on a cache
+    /// line): a kernel that scatters a tile into many planes a plane apart otherwise reads
+    /// each destination line before writing it, and with more planes than cache ways it
+    /// reads it twice, once per half. Call [`store_fence`](Self::store_fence) before
+    /// another thread reads what it wrote.
+    ///
+    /// # Safety
+    ///
+    /// `src` is valid for 16 rows of 8 values, `dst` for 8 rows of 16, and they do not
+    /// overlap.
+    #[inline(always)]
+    unsafe fn transpose16x8(
+        src: *const Self,
+        src_stride: usize,
+        dst: *mut Self,
+        dst_stride: usize,
+    ) {
+        // SAFETY: the caller's promise, for each half.
+        unsafe {
+            Self::transpose8(src, src_stride, dst, dst_stride);
+            Self::transpose8(src.add(8 * src_stride), src_stride, dst.add(8), dst_stride);
+        }
+    }
+    /// Orders the stores of [`transpose16x8`](Self::transpose16x8) before this thread's
+    /// later ones (nothing where that wrote through the caches).
+    #[inline(always)]
+    fn store_fence() {}
 }
 
 /// The largest value [`Real::truncate`] converts (`2³⁰`, exact in both precisions).
@@ -159,6 +188,33 @@ impl Real for f32 {
         // SAFETY: the caller's promise.
         unsafe { transpose8_scalar(src, src_stride, dst, dst_stride) }
     }
+    #[inline(always)]
+    unsafe fn transpose16x8(
+        src: *const Self,
+        src_stride: usize,
+        dst: *mut Self,
+        dst_stride: usize,
+    ) {
+        #[cfg(target_arch = "x86_64")]
+        if has_avx2() && (dst as usize).is_multiple_of(64) && dst_stride.is_multiple_of(16) {
+            // SAFETY: the CPU has AVX2; every destination row starts on a 64-byte line; the
+            // pointers are the caller's promise.
+            return unsafe { transpose16x8_stream_avx(src, src_stride, dst, dst_stride) };
+        }
+        // SAFETY: the caller's promise, for each half.
+        unsafe {
+            Self::transpose8(src, src_stride, dst, dst_stride);
+            Self::transpose8(src.add(8 * src_stride), src_stride, dst.add(8), dst_stride);
+        }
+    }
+    #[inline(always)]
+    fn store_fence() {
+        #[cfg(target_arch = "x86_64")]
+        // SAFETY: `sfence` is SSE, which every x86_64 CPU has.
+        unsafe {
+            std::arch::x86_64::_mm_sfence()
+        };
+    }
 }
 
 /// [`Real::transpose8`] of float32 in eight registers: interleave pairs of rows, then pairs
@@ -206,6 +262,82 @@ unsafe fn transpose8_avx(src: *const f32, src_stride: usize, dst: *mut f32, dst_
                 dst.add((j + 4) * dst_stride),
                 _mm256_permute2f128_ps::<0x31>(u[j], u[j + 4]),
             );
+        }
+    }
+}
+
+/// The eight rows of [`transpose8_avx`] of the 8 × 8 block at `src`, in registers.
+///
+/// # Safety
+///
+/// The CPU has AVX; `src` is valid for 8 rows of 8 values.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+unsafe fn transposed8_avx(src: *const f32, src_stride: usize) -> [std::arch::x86_64::__m256; 8] {
+    use std::arch::x86_64::*;
+    let r: [__m256; 8] = std::array::from_fn(|i| {
+        // SAFETY: the caller's promise: 8 rows of 8 at `src`; unaligned loads.
+        unsafe { _mm256_loadu_ps(src.add(i * src_stride)) }
+    });
+    let t = [
+        _mm256_unpacklo_ps(r[0], r[1]),
+        _mm256_unpackhi_ps(r[0], r[1]),
+        _mm256_unpacklo_ps(r[2], r[3]),
+        _mm256_unpackhi_ps(r[2], r[3]),
+        _mm256_unpacklo_ps(r[4], r[5]),
+        _mm256_unpackhi_ps(r[4], r[5]),
+        _mm256_unpacklo_ps(r[6], r[7]),
+        _mm256_unpackhi_ps(r[6], r[7]),
+    ];
+    let u = [
+        _mm256_shuffle_ps::<0x44>(t[0], t[2]),
+        _mm256_shuffle_ps::<0xEE>(t[0], t[2]),
+        _mm256_shuffle_ps::<0x44>(t[1], t[3]),
+        _mm256_shuffle_ps::<0xEE>(t[1], t[3]),
+        _mm256_shuffle_ps::<0x44>(t[4], t[6]),
+        _mm256_shuffle_ps::<0xEE>(t[4], t[6]),
+        _mm256_shuffle_ps::<0x44>(t[5], t[7]),
+        _mm256_shuffle_ps::<0xEE>(t[5], t[7]),
+    ];
+    std::array::from_fn(|j| {
+        if j < 4 {
+            _mm256_permute2f128_ps::<0x20>(u[j], u[j + 4])
+        } else {
+            _mm256_permute2f128_ps::<0x31>(u[j - 4], u[j])
+        }
+    })
+}
+
+/// [`Real::transpose16x8`] of float32 with streaming stores: each destination row's 16
+/// values are one whole 64-byte line, written in two back-to-back stores that the CPU
+/// combines into one line write, with no read of the line first.
+///
+/// # Safety
+///
+/// The CPU has AVX; `dst` and every row `dst_stride` apart start on a 64-byte boundary;
+/// the pointers as [`Real::transpose16x8`].
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+unsafe fn transpose16x8_stream_avx(
+    src: *const f32,
+    src_stride: usize,
+    dst: *mut f32,
+    dst_stride: usize,
+) {
+    use std::arch::x86_64::*;
+    // SAFETY: the caller's promise: 16 rows of 8 at `src`.
+    let (low, high) = unsafe {
+        (
+            transposed8_avx(src, src_stride),
+            transposed8_avx(src.add(8 * src_stride), src_stride),
+        )
+    };
+    for j in 0..8 {
+        // SAFETY: the caller's promise: row j's 16 values at a 64-byte boundary.
+        unsafe {
+            let row = dst.add(j * dst_stride);
+            _mm256_stream_ps(row, low[j]);
+            _mm256_stream_ps(row.add(8), high[j]);
         }
     }
 }
@@ -470,5 +602,53 @@ mod tests {
         for (i, &v) in out.iter().enumerate() {
             assert_eq!(v, a[i] - b[i] * s[i / per_item], "value {i}");
         }
+    }
+
+    /// `transpose16x8` into each offset of a 64-byte-aligned buffer (the streaming path at
+    /// offset 0 when the row stride is a multiple of 16, the cached path elsewhere), for both
+    /// precisions: every value lands where the transposition puts it, and nothing else is
+    /// written.
+    fn transposes_sixteen_rows_of_eight<T: Real + PartialEq + std::fmt::Debug>() {
+        let src_stride = 11;
+        let src: Vec<T> = (0..16 * src_stride)
+            .map(|i| T::from_f64(i as f64 + 0.5))
+            .collect();
+        for dst_stride in [16, 32, 40, 21] {
+            for offset in [0, 1, 8, 16] {
+                let len = offset + 8 * dst_stride;
+                let mut buffer = vec![T::from_f64(-1.0); len + 64];
+                // The first value on a 64-byte boundary (a line holds 16 float32, 8 float64).
+                let line = buffer.as_ptr().align_offset(64);
+                let dst = &mut buffer[line..line + len];
+                // SAFETY: 16 rows of 8 from src, 8 rows of 16 from dst[offset..].
+                unsafe {
+                    T::transpose16x8(
+                        src.as_ptr(),
+                        src_stride,
+                        dst[offset..].as_mut_ptr(),
+                        dst_stride,
+                    )
+                };
+                T::store_fence();
+                for (at, &v) in dst.iter().enumerate() {
+                    let (j, i) = (
+                        (at - offset.min(at)) / dst_stride,
+                        (at - offset.min(at)) % dst_stride,
+                    );
+                    let want = if at >= offset && j < 8 && i < 16 {
+                        src[i * src_stride + j]
+                    } else {
+                        T::from_f64(-1.0)
+                    };
+                    assert_eq!(v, want, "stride {dst_stride}, offset {offset}, value {at}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn transposes_sixteen_rows_of_eight_in_either_precision() {
+        transposes_sixteen_rows_of_eight::<f32>();
+        transposes_sixteen_rows_of_eight::<f64>();
     }
 }
