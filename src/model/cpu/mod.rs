@@ -101,11 +101,8 @@ pub trait Real:
         dst: *mut Self,
         dst_stride: usize,
     ) {
-        // SAFETY: the caller's promise, for each half.
-        unsafe {
-            Self::transpose8(src, src_stride, dst, dst_stride);
-            Self::transpose8(src.add(8 * src_stride), src_stride, dst.add(8), dst_stride);
-        }
+        // SAFETY: the caller's promise.
+        unsafe { transpose16x8_by_halves(src, src_stride, dst, dst_stride) }
     }
     /// Orders the stores of [`transpose16x8`](Self::transpose16x8) before this thread's
     /// later ones (nothing where that wrote through the caches).
@@ -115,6 +112,25 @@ pub trait Real:
 
 /// The largest value [`Real::truncate`] converts (`2³⁰`, exact in both precisions).
 const GRID_INDEX_MAX: f64 = (1u32 << 30) as f64;
+
+/// [`Real::transpose16x8`] as two [`Real::transpose8`], through the caches.
+///
+/// # Safety
+///
+/// As [`Real::transpose16x8`].
+#[inline(always)]
+unsafe fn transpose16x8_by_halves<T: Real>(
+    src: *const T,
+    src_stride: usize,
+    dst: *mut T,
+    dst_stride: usize,
+) {
+    // SAFETY: the caller's promise, for each half.
+    unsafe {
+        T::transpose8(src, src_stride, dst, dst_stride);
+        T::transpose8(src.add(8 * src_stride), src_stride, dst.add(8), dst_stride);
+    }
+}
 
 /// [`Real::transpose8`] one value at a time.
 ///
@@ -201,11 +217,8 @@ impl Real for f32 {
             // pointers are the caller's promise.
             return unsafe { transpose16x8_stream_avx(src, src_stride, dst, dst_stride) };
         }
-        // SAFETY: the caller's promise, for each half.
-        unsafe {
-            Self::transpose8(src, src_stride, dst, dst_stride);
-            Self::transpose8(src.add(8 * src_stride), src_stride, dst.add(8), dst_stride);
-        }
+        // SAFETY: the caller's promise.
+        unsafe { transpose16x8_by_halves(src, src_stride, dst, dst_stride) }
     }
     #[inline(always)]
     fn store_fence() {
@@ -217,8 +230,7 @@ impl Real for f32 {
     }
 }
 
-/// [`Real::transpose8`] of float32 in eight registers: interleave pairs of rows, then pairs
-/// of pairs, then swap 128-bit halves (the compiler made the generic loop 64 scalar moves).
+/// [`Real::transpose8`] of float32 in eight registers ([`transposed8_avx`]).
 ///
 /// # Safety
 ///
@@ -227,46 +239,17 @@ impl Real for f32 {
 #[target_feature(enable = "avx")]
 unsafe fn transpose8_avx(src: *const f32, src_stride: usize, dst: *mut f32, dst_stride: usize) {
     use std::arch::x86_64::*;
-    let r: [__m256; 8] = std::array::from_fn(|i| {
-        // SAFETY: the caller's promise: 8 rows of 8 at `src`; unaligned loads.
-        unsafe { _mm256_loadu_ps(src.add(i * src_stride)) }
-    });
-    let t = [
-        _mm256_unpacklo_ps(r[0], r[1]),
-        _mm256_unpackhi_ps(r[0], r[1]),
-        _mm256_unpacklo_ps(r[2], r[3]),
-        _mm256_unpackhi_ps(r[2], r[3]),
-        _mm256_unpacklo_ps(r[4], r[5]),
-        _mm256_unpackhi_ps(r[4], r[5]),
-        _mm256_unpacklo_ps(r[6], r[7]),
-        _mm256_unpackhi_ps(r[6], r[7]),
-    ];
-    let u = [
-        _mm256_shuffle_ps::<0x44>(t[0], t[2]),
-        _mm256_shuffle_ps::<0xEE>(t[0], t[2]),
-        _mm256_shuffle_ps::<0x44>(t[1], t[3]),
-        _mm256_shuffle_ps::<0xEE>(t[1], t[3]),
-        _mm256_shuffle_ps::<0x44>(t[4], t[6]),
-        _mm256_shuffle_ps::<0xEE>(t[4], t[6]),
-        _mm256_shuffle_ps::<0x44>(t[5], t[7]),
-        _mm256_shuffle_ps::<0xEE>(t[5], t[7]),
-    ];
-    for j in 0..4 {
-        // SAFETY: the caller's promise; unaligned stores.
-        unsafe {
-            _mm256_storeu_ps(
-                dst.add(j * dst_stride),
-                _mm256_permute2f128_ps::<0x20>(u[j], u[j + 4]),
-            );
-            _mm256_storeu_ps(
-                dst.add((j + 4) * dst_stride),
-                _mm256_permute2f128_ps::<0x31>(u[j], u[j + 4]),
-            );
-        }
+    // SAFETY: the caller's promise: 8 rows of 8 at `src`.
+    let rows = unsafe { transposed8_avx(src, src_stride) };
+    for (j, row) in rows.into_iter().enumerate() {
+        // SAFETY: the caller's promise: 8 rows of 8 at `dst`; unaligned stores.
+        unsafe { _mm256_storeu_ps(dst.add(j * dst_stride), row) };
     }
 }
 
-/// The eight rows of [`transpose8_avx`] of the 8 × 8 block at `src`, in registers.
+/// The 8 × 8 block at `src` transposed, row `j` of the result holding column `j`, in
+/// registers: interleave pairs of rows, then pairs of pairs, then swap 128-bit halves (the
+/// compiler made the generic loop 64 scalar moves).
 ///
 /// # Safety
 ///
