@@ -181,5 +181,45 @@ fn prefilter_benches(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(energy, benches, prefilter_benches);
+fn adjoint_benches(c: &mut Criterion) {
+    use deepmorph::model::warp::host;
+    let mut group = c.benchmark_group("adjoint");
+    group.sample_size(20).warm_up_time(Duration::from_secs(1));
+    for (channels, n) in [(67, 256), (131, 128), (259, 64), (515, 32), (515, 16)] {
+        let plane = n * n;
+        let grad: Vec<f32> = (0..channels * plane)
+            .map(|i| ((i as f64 * 0.618).fract() - 0.5) as f32)
+            .collect();
+        // A smooth deformation of a few pixels, in sample coordinates (row plane, column
+        // plane), so neighbouring points scatter into neighbouring coefficients.
+        let phi: Vec<f32> = (0..2 * plane)
+            .map(|i| {
+                let (axis, p) = (i / plane, i % plane);
+                let (y, x) = ((p / n) as f64, (p % n) as f64);
+                let s = (n as f64 / 64.0).max(1.0);
+                let v = if axis == 0 {
+                    y + 1.5 * s * (x * 0.05).sin()
+                } else {
+                    x + 1.5 * s * (y * 0.07).cos()
+                };
+                v.clamp(0.0, (n - 1) as f64) as f32
+            })
+            .collect();
+        let d = host::Dims {
+            n: 1,
+            c: channels,
+            h: n,
+            w: n,
+            ho: n,
+            wo: n,
+        };
+        let mut out = vec![0.0f32; channels * plane];
+        group.bench_with_input(BenchmarkId::new(format!("C{channels}"), n), &n, |b, _| {
+            b.iter(|| host::sample_adjoint(&grad, &phi, &mut out, d))
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(energy, benches, prefilter_benches, adjoint_benches);
 criterion_main!(energy);

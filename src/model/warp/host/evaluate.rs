@@ -56,6 +56,7 @@ pub(super) fn sample_channels_last<T: SplineReal>(
 ) {
     let (points, c) = (d.points(), d.c);
     let tasks = points.div_ceil(PIXELS_PER_TASK);
+    let stream = std::mem::size_of_val(out) >= STREAM_FROM_BYTES;
     let out = Shared(out.as_mut_ptr().cast::<T>());
     for b in 0..d.n {
         let (table, stride) = image_table(coeffs, layout, d, b);
@@ -73,6 +74,7 @@ pub(super) fn sample_channels_last<T: SplineReal>(
                         c,
                         Shared(out.get(b * c * points + first)),
                         points,
+                        stream,
                     )
                 };
             }

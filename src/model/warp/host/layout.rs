@@ -111,16 +111,26 @@ pub(super) fn image_table<T: SplineReal>(
     }
 }
 
+/// Outputs of [`sample_channels_last`](super::evaluate) from this many bytes on are written
+/// around the caches ([`tile_to_planes`]'s `stream`): about one core's second-level cache
+/// (2 MiB on the Xeon of docs/benchmarks.md). A smaller warp stays in the caches for the
+/// kernel that reads it next, and streamed it cost that kernel a trip to memory (the sweep
+/// bench's 64² frame of 67 channels, 1.1 MB: +13 % a sweep). The levels of a deep morph lie
+/// well to either side: 0.5 MB at 16², 2.1 MB and more from 32² on (float32).
+pub(super) const STREAM_FROM_BYTES: usize = 3 << 19;
+
 /// Writes the channels-last `tile` (`count × c`) into `c` planes `plane` values apart from
-/// `out`: `out[ch·plane + i] = tile[i·c + ch]`, in blocks of 16 points × 8 channels
-/// ([`SplineReal::transpose16x8`]; one value at a time, the gather with a stride of `c` cost
-/// half as much as the evaluation itself). Each block writes a whole cache line of each of
-/// its planes, around the caches for float32: with the planes a power of two apart, more
-/// lines of them compete for a cache set than it has ways, and written through the caches
-/// every line was read first, often twice (once per half). Streamed, a deep sweep cost
-/// 12–18 % less on the 32²…128² levels and the same at 256², where the next kernel then reads
-/// the warp from memory instead of the last-level cache (docs/benchmarks.md, "Streaming the
-/// warp's planes").
+/// `out`: `out[ch·plane + i] = tile[i·c + ch]`, in blocks of 8 channels (one value at a time,
+/// the gather with a stride of `c` cost half as much as the evaluation itself).
+///
+/// With `stream`, blocks of 16 points ([`SplineReal::transpose16x8`]): each block writes a
+/// whole cache line of each of its planes, around the caches for float32. With the planes a
+/// power of two apart, more lines of them compete for a cache set than it has ways, and
+/// written through the caches every line was read first, often twice (once per half).
+/// Streamed, a deep sweep cost 12–18 % less on the 32²…128² levels and the same at 256²,
+/// where the next kernel then reads the warp from memory instead of the last-level cache
+/// (docs/benchmarks.md, "Streaming the warp's planes"); an output that fits a core's cache
+/// is better written through it ([`STREAM_FROM_BYTES`]).
 ///
 /// # Safety
 ///
@@ -132,64 +142,68 @@ pub(super) unsafe fn tile_to_planes<T: SplineReal>(
     c: usize,
     out: Shared<T>,
     plane: usize,
+    stream: bool,
 ) {
-    const B: usize = 8;
     let count = tile.len() / c;
-    let column = |ch: usize, from: usize, len: usize| -> &mut [T] {
-        // SAFETY: the caller's promise, for channel ch's points from..from + len.
-        unsafe { std::slice::from_raw_parts_mut(out.get(ch * plane + from), len) }
+    // SAFETY: a block of the tile into its planes, as `blocks_to_planes` promises.
+    let lines = |s: *const T, ss, d: *mut T, ds| unsafe { T::transpose16x8(s, ss, d, ds) };
+    // SAFETY: as for `lines`.
+    let halves = |s: *const T, ss, d: *mut T, ds| unsafe { T::transpose8(s, ss, d, ds) };
+    let mut done = 0;
+    if stream {
+        // SAFETY: the caller's promise, passed on.
+        done = unsafe { blocks_to_planes::<T, 16>(tile, c, out, plane, lines) };
+    }
+    // SAFETY: the caller's promise, passed on, for the points from `done`.
+    done += unsafe {
+        blocks_to_planes::<T, 8>(&tile[done * c..], c, Shared(out.get(done)), plane, halves)
     };
-    let (whole_points, whole_channels) = (count - count % B, c - c % B);
-    // Sixteen points at a time first: each plane's 16 values are a whole cache line, written
-    // around the caches where the type can ([`SplineReal::transpose16x8`]).
-    let pairs = count - count % (2 * B);
-    for i0 in (0..pairs).step_by(2 * B) {
-        for ch0 in (0..whole_channels).step_by(B) {
-            // SAFETY: the 16 rows of 8 from (i0, ch0) lie in the tile; the 8 columns of 16
-            // are the caller's promise.
-            unsafe {
-                T::transpose16x8(
-                    tile[i0 * c + ch0..].as_ptr(),
-                    c,
-                    out.get(ch0 * plane + i0),
-                    plane,
-                )
-            };
-        }
-        for ch in whole_channels..c {
-            for (i, v) in column(ch, i0, 2 * B).iter_mut().enumerate() {
-                *v = tile[(i0 + i) * c + ch];
-            }
-        }
-    }
-    for i0 in (pairs..whole_points).step_by(B) {
-        for ch0 in (0..whole_channels).step_by(B) {
-            // SAFETY: the 8 rows of 8 from (i0, ch0) lie in the tile; the 8 columns are
-            // the caller's promise.
-            unsafe {
-                T::transpose8(
-                    tile[i0 * c + ch0..].as_ptr(),
-                    c,
-                    out.get(ch0 * plane + i0),
-                    plane,
-                )
-            };
-        }
-        for ch in whole_channels..c {
-            for (i, v) in column(ch, i0, B).iter_mut().enumerate() {
-                *v = tile[(i0 + i) * c + ch];
-            }
-        }
-    }
     for ch in 0..c {
-        for (i, v) in column(ch, whole_points, count - whole_points)
-            .iter_mut()
-            .enumerate()
-        {
-            *v = tile[(whole_points + i) * c + ch];
+        for i in done..count {
+            // SAFETY: the caller's promise, for channel ch's point i.
+            unsafe { out.write(ch * plane + i, tile[i * c + ch]) };
         }
     }
     T::store_fence();
+}
+
+/// The first whole blocks of `P` points of [`tile_to_planes`], `P × 8` values at a time by
+/// `transpose` (`P` rows of 8 from a row stride to 8 rows of `P` to another), the channels
+/// past the last 8 one at a time. Returns how many points it wrote.
+///
+/// # Safety
+///
+/// As [`tile_to_planes`]; `transpose` is sound for a `P × 8` block of the tile into 8 of
+/// the planes.
+#[inline(always)]
+unsafe fn blocks_to_planes<T: SplineReal, const P: usize>(
+    tile: &[T],
+    c: usize,
+    out: Shared<T>,
+    plane: usize,
+    transpose: impl Fn(*const T, usize, *mut T, usize),
+) -> usize {
+    let count = tile.len() / c;
+    let (whole_points, whole_channels) = (count - count % P, c - c % 8);
+    for i0 in (0..whole_points).step_by(P) {
+        for ch0 in (0..whole_channels).step_by(8) {
+            // SAFETY: the P rows of 8 from (i0, ch0) lie in the tile; the 8 columns of P are
+            // the caller's promise.
+            transpose(
+                tile[i0 * c + ch0..].as_ptr(),
+                c,
+                unsafe { out.get(ch0 * plane + i0) },
+                plane,
+            );
+        }
+        for ch in whole_channels..c {
+            for i in i0..i0 + P {
+                // SAFETY: the caller's promise, for channel ch's point i.
+                unsafe { out.write(ch * plane + i, tile[i * c + ch]) };
+            }
+        }
+    }
+    whole_points
 }
 
 simd_dispatch!(
@@ -198,6 +212,6 @@ simd_dispatch!(
     /// # Safety
     ///
     /// As [`tile_to_planes`].
-    pub(super) unsafe fn tile_to_planes_simd<T: SplineReal>(tile: &[T], c: usize, out: Shared<T>, plane: usize)
+    pub(super) unsafe fn tile_to_planes_simd<T: SplineReal>(tile: &[T], c: usize, out: Shared<T>, plane: usize, stream: bool)
         => tile_to_planes
 );

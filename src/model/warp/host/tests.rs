@@ -198,6 +198,59 @@ fn the_adjoint_writes_every_value() {
     }
 }
 
+/// The channels-last adjoint (many channels) gives the per-group scatter's values bit for
+/// bit in float32, for channel counts that are and are not multiples of a register, blocks
+/// of channels split over 1, 2 and 5 threads, one and two images, points sampled off the
+/// coefficient grid (`H' × W'` ≠ `H × W`), on the mirror's folds and outside the clamp
+/// range (the stencils that are not four contiguous columns).
+#[test]
+fn the_channels_last_adjoint_is_the_grouped_one_bit_for_bit() {
+    for (n, c) in [(1, 8), (1, 13), (2, 67), (1, 131)] {
+        let d = Dims {
+            n,
+            c,
+            h: 23,
+            w: 37,
+            ho: 19,
+            wo: 41,
+        };
+        let phi: Vec<f32> = (0..n * 2 * d.points())
+            .map(|i| {
+                let hi = if (i / d.points()).is_multiple_of(2) {
+                    22.0
+                } else {
+                    36.0
+                };
+                ((i as f64 * 0.773).rem_euclid(hi + 4.0) - 2.0) as f32
+            })
+            .collect();
+        let grad: Vec<f32> = ramp(n * c * d.points(), 0.7)
+            .iter()
+            .map(|&v| v as f32)
+            .collect();
+        let planes = n * c * d.h * d.w;
+        let mut want = vec![MaybeUninit::new(f32::NAN); planes];
+        sample_adjoint_groups(&grad, &phi, &mut want, d, MAX_GROUP);
+        for threads in [1, 2, 5] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a thread pool");
+            let mut got = vec![MaybeUninit::new(f32::NAN); planes];
+            pool.install(|| sample_adjoint_channels_last(&grad, &phi, &mut got, d));
+            for (i, (x, y)) in got.iter().zip(&want).enumerate() {
+                // SAFETY: both kernels write every value (NaN would show otherwise).
+                let (x, y) = unsafe { (x.assume_init(), y.assume_init()) };
+                assert_eq!(
+                    x.to_bits(),
+                    y.to_bits(),
+                    "{n} × {c}, {threads} threads, value {i}: {x} against {y}"
+                );
+            }
+        }
+    }
+}
+
 /// Two images of `c` channels, 9 × 11 coefficients sampled at 7 × 5 points.
 fn small_dims(c: usize) -> Dims {
     Dims {
@@ -275,26 +328,39 @@ fn channels_last_coefficients_are_the_planar_ones_bit_for_bit() {
 /// Channels-last evaluation gives each plane what the planar one-channel kernel gives it.
 #[test]
 fn tiles_go_to_planes_as_the_definition_says() {
-    // Whole 8 × 8 blocks, channels and points left over, in both precisions.
+    // Whole blocks of 16 and 8 points, channels and points left over, written through the
+    // caches and streamed (planes a multiple of 16 apart from a 64-byte line, where float32
+    // streams on AVX2, and not), in both precisions.
     fn check<T: SplineReal + std::fmt::Debug>() {
-        for (count, c) in [(64, 67), (35, 13), (8, 8), (5, 3)] {
-            let plane = count + 3;
-            let tile: Vec<T> = (0..count * c).map(|i| T::from_i32(i as i32)).collect();
-            let mut out = vec![T::from_f64(-1.0); c * plane];
-            // SAFETY: `out` holds `c` planes of `plane ≥ count` values.
-            unsafe { tile_to_planes_simd(&tile, c, Shared(out.as_mut_ptr()), plane) };
-            for ch in 0..c {
-                for i in 0..plane {
-                    let want = if i < count {
-                        tile[i * c + ch]
-                    } else {
-                        T::from_f64(-1.0)
-                    };
-                    assert_eq!(
-                        out[ch * plane + i].to_f64(),
-                        want.to_f64(),
-                        "{count} × {c}: ({ch}, {i})"
-                    );
+        for (count, c, plane) in [
+            (64, 67, 67),
+            (64, 67, 64),
+            (59, 16, 64),
+            (35, 13, 38),
+            (24, 8, 32),
+            (8, 8, 11),
+            (5, 3, 8),
+        ] {
+            for stream in [false, true] {
+                let tile: Vec<T> = (0..count * c).map(|i| T::from_i32(i as i32)).collect();
+                let mut buffer = vec![T::from_f64(-1.0); c * plane + 64];
+                let line = buffer.as_ptr().align_offset(64);
+                let out = &mut buffer[line..line + c * plane];
+                // SAFETY: `out` holds `c` planes of `plane ≥ count` values.
+                unsafe { tile_to_planes_simd(&tile, c, Shared(out.as_mut_ptr()), plane, stream) };
+                for ch in 0..c {
+                    for i in 0..plane {
+                        let want = if i < count {
+                            tile[i * c + ch]
+                        } else {
+                            T::from_f64(-1.0)
+                        };
+                        assert_eq!(
+                            out[ch * plane + i].to_f64(),
+                            want.to_f64(),
+                            "{count} × {c}, stream {stream}: ({ch}, {i})"
+                        );
+                    }
                 }
             }
         }
