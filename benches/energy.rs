@@ -8,8 +8,9 @@
 //!   `R[φ_k, a_k] + D[f_{k−1}, f_k, φ_k]`, w.r.t. `φ_k`, `f_{k−1}` and `f_k`;
 //! - `anisotropy/BACKEND/{n}`: `a[u]` of one RGB frame (SPEC §3), as each deformation step
 //!   computes it;
-//! - `prefilter/{what}/C{c}x15/{n}`: the native CPU prefilter (the flex backend's kernel) of
-//!   the 15 frames of a `K = 15` sweep at once: `channels-last` is `P f` of the deep model's
+//! - `prefilter/{what}/C{c}x{frames}/{n}`: the native CPU prefilter (the flex backend's
+//!   kernel) of the 15 frames of a `K = 15` sweep at once (the batched schedule), or of one
+//!   frame (the sequential schedule's steps): `channels-last` is `P f` of the deep model's
 //!   67 channels as the warp reads them, `adjoint` `Pᵀ g` of 67 planar channels (the warp's
 //!   backward), `planar` `P f` of RGB.
 //!
@@ -161,21 +162,25 @@ fn prefilter_benches(c: &mut Criterion) {
     let mut group = c.benchmark_group("prefilter");
     group.sample_size(10).warm_up_time(Duration::from_secs(1));
     for n in [128, 256] {
-        for (what, channels) in [("channels-last", 67), ("adjoint", 67), ("planar", 3)] {
-            let len = FRAMES * channels * n * n;
-            let source: Vec<f32> = (0..len)
-                .map(|i| ((i as f64 * 0.618).fract() - 0.5) as f32)
-                .collect();
-            let mut out = vec![0.0f32; len];
-            let id = BenchmarkId::new(format!("{what}/C{channels}x{FRAMES}"), n);
-            group.bench_with_input(id, &n, |b, _| {
-                b.iter(|| match what {
-                    "channels-last" => {
-                        host::prefilter_channels_last(&source, &mut out, (FRAMES, channels, n, n))
-                    }
-                    _ => host::prefilter_into(&source, &mut out, n, n, what == "adjoint"),
-                })
-            });
+        for frames in [FRAMES, 1] {
+            for (what, channels) in [("channels-last", 67), ("adjoint", 67), ("planar", 3)] {
+                let len = frames * channels * n * n;
+                let source: Vec<f32> = (0..len)
+                    .map(|i| ((i as f64 * 0.618).fract() - 0.5) as f32)
+                    .collect();
+                let mut out = vec![0.0f32; len];
+                let id = BenchmarkId::new(format!("{what}/C{channels}x{frames}"), n);
+                group.bench_with_input(id, &n, |b, _| {
+                    b.iter(|| match what {
+                        "channels-last" => host::prefilter_channels_last(
+                            &source,
+                            &mut out,
+                            (frames, channels, n, n),
+                        ),
+                        _ => host::prefilter_into(&source, &mut out, n, n, what == "adjoint"),
+                    })
+                });
+            }
         }
     }
     group.finish();

@@ -78,6 +78,7 @@ pub(super) const LINES_TOGETHER: usize = 8;
 
 /// Solves the system in place on each of the contiguous lines of `n` samples in `group`,
 /// the lines interleaved step by step.
+#[inline(always)]
 pub(super) fn solve_lines<T: SplineReal>(
     group: &mut [T],
     n: usize,
@@ -106,6 +107,10 @@ pub(super) fn solve_lines<T: SplineReal>(
     }
 }
 
+simd_dispatch!(fn solve_lines_simd<T: SplineReal>(
+    group: &mut [T], n: usize, factors: &(Vec<T>, Vec<T>, Vec<T>)
+) => solve_lines);
+
 /// The forward elimination of step `i` of the system along a line, on a whole row of lanes
 /// at once (lane by lane the Thomas recurrence): `here` is row `i`, `above` row `i − 1`
 /// already eliminated (`None` for `i = 0`). Each value is flushed ([`Real::flush_tiny`]):
@@ -120,9 +125,7 @@ pub(super) fn eliminate<T: SplineReal>(
 ) {
     if let Some(above) = above {
         let (l, p) = (lower[i], pivot[i]);
-        for (x, &a) in here.iter_mut().zip(above) {
-            *x = ((*x - l * a) * p).flush_tiny();
-        }
+        by_registers(here, above, |x, a| ((x - l * a) * p).flush_tiny());
     } else {
         for x in here.iter_mut() {
             *x = (*x * pivot[0]).flush_tiny();
@@ -140,8 +143,27 @@ pub(super) fn substitute<T: SplineReal>(
     (_, _, upper): &(Vec<T>, Vec<T>, Vec<T>),
 ) {
     let u = upper[i];
-    for (x, &b) in here.iter_mut().zip(below) {
-        *x = (*x - u * b).flush_tiny();
+    by_registers(here, below, |x, b| (x - u * b).flush_tiny());
+}
+
+/// `here[j] = step(here[j], other[j])` for every `j` of `here` (`other` at least as long),
+/// a register of 8 values at a time: each block's values are read before any is written,
+/// so the loop vectorises without a check that the rows overlap (the compiler's check sent
+/// the column solves of one image down their one-value-at-a-time loop).
+#[inline(always)]
+fn by_registers<T: SplineReal>(here: &mut [T], other: &[T], step: impl Fn(T, T) -> T) {
+    let other = &other[..here.len()];
+    let done = here.len() - here.len() % 8;
+    for (x, o) in here.chunks_exact_mut(8).zip(other.chunks_exact(8)) {
+        let o: [T; 8] = o.try_into().expect("eight values");
+        let mut v: [T; 8] = (&*x).try_into().expect("eight values");
+        for j in 0..8 {
+            v[j] = step(v[j], o[j]);
+        }
+        x.copy_from_slice(&v);
+    }
+    for (x, &o) in here[done..].iter_mut().zip(&other[done..]) {
+        *x = step(*x, o);
     }
 }
 
@@ -151,6 +173,7 @@ pub(super) fn substitute<T: SplineReal>(
 /// # Safety
 ///
 /// `plane` points to a `rows × width` plane whose columns `cols` no other thread touches.
+#[inline(always)]
 pub(super) unsafe fn solve_columns<T: SplineReal>(
     plane: Shared<T>,
     width: usize,
@@ -169,6 +192,18 @@ pub(super) unsafe fn solve_columns<T: SplineReal>(
         substitute(row(i), row(i + 1), i, factors);
     }
 }
+
+simd_dispatch!(
+    /// [`solve_columns`], compiled for AVX2 where the CPU has it.
+    ///
+    /// # Safety
+    ///
+    /// As [`solve_columns`].
+    unsafe fn solve_columns_simd<T: SplineReal>(
+        plane: Shared<T>, width: usize, rows: usize, cols: std::ops::Range<usize>,
+        factors: &(Vec<T>, Vec<T>, Vec<T>)
+    ) => solve_columns
+);
 
 /// The interpolating prefilter `c = P f` of every `height × width` plane of `data`, in place
 /// (SPEC §1, exact); with `transpose`, its adjoint `Pᵀ g`. `P` is separable: the same 1-D
@@ -229,7 +264,7 @@ pub(super) fn prefilter_from<T: SplineReal>(
             if let Some(source) = source {
                 lines.copy_from_slice(&source[g * group..g * group + lines.len()]);
             }
-            solve_lines(lines, width, &along_w)
+            solve_lines_simd(lines, width, &along_w)
         });
     // Columns in blocks that keep a task's rows in cache.
     solve_all_columns(data, width, height, 64, &along_h);
@@ -274,7 +309,9 @@ pub(super) fn solve_all_columns<T: SplineReal>(
             let cols = b * block..((b + 1) * block).min(width);
             // SAFETY: task (p, b) owns columns `cols` of plane `p`; tasks differ in one or the
             // other.
-            unsafe { solve_columns(Shared(base.get(p * plane)), width, height, cols, along_h) };
+            unsafe {
+                solve_columns_simd(Shared(base.get(p * plane)), width, height, cols, along_h)
+            };
         });
 }
 
