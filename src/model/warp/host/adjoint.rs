@@ -202,7 +202,7 @@ pub(super) fn sample_adjoint_groups<T: SplineReal>(
 /// A scatter-add: each point adds into 16 coefficients, and points collide. The planes
 /// `(image, channel)` are independent: many channels of an image go in blocks, one per core,
 /// through channels-last tables; with many planes of a few channels, tasks take groups of
-/// up to [`MAX_GROUP`] channels of one image; when there are fewer planes than twice the
+/// up to 4 channels of one image; when there are fewer planes than twice the
 /// threads, each plane's points are split into parts that add into private copies, summed
 /// at the end, so that 3 RGB channels still keep every core busy.
 pub fn sample_adjoint<T: SplineReal>(grad: &[T], phi: &[T], out: &mut [T], d: Dims) {
