@@ -71,22 +71,130 @@ pub fn factors(n: usize, transpose: bool) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
     (t.lower, t.inverse_pivot, t.upper_ratio)
 }
 
-/// Lines solved side by side along the rows: the Thomas recurrence is a chain of dependent
-/// multiply-adds, so one line at a time waits on each step's latency; eight independent
-/// chains keep the pipeline full (measured: the row pass was 2/3 of the prefilter's time).
-pub(super) const LINES_TOGETHER: usize = 8;
+/// Lines of one register: eight, float32 in one AVX register (float64 in two).
+const LANES: usize = 8;
 
-/// Solves the system in place on each of the contiguous lines of `n` samples in `group`,
-/// the lines interleaved step by step.
+/// Lines solved side by side along the rows, as the lanes of four registers: the Thomas
+/// recurrence is a chain of dependent steps (a multiply, a subtraction, a multiply and the
+/// flush), so one register of lines waits on each step's latency; four independent
+/// registers keep the pipeline full. (Before: eight lines as eight scalar chains, each step
+/// a value at a time, 7 % of a deep sweep's samples in `solve_plane` alone.)
+pub(super) const LINES_TOGETHER: usize = 4 * LANES;
+
+/// The rows of a group of lines, transposed sample-major: entry `i` holds sample `i` of
+/// every line of the group, one line per lane. Reused from group to group.
+pub(super) type LineLanes<T> = Vec<[T; LINES_TOGETHER]>;
+
+/// Solves the system in place on each of the contiguous lines of `n` samples in `group`.
+/// A whole group of [`LINES_TOGETHER`] lines (with `n ≥ 8`) is transposed into `lanes`
+/// by 8 × 8 blocks and solved with the lines as vector lanes, then transposed back; a
+/// smaller group is solved eight lines at a time, interleaved step by step. Per value the
+/// same operations in the same order either way: the same bits.
 #[inline(always)]
 pub(super) fn solve_lines<T: SplineReal>(
+    group: &mut [T],
+    n: usize,
+    factors: &(Vec<T>, Vec<T>, Vec<T>),
+    lanes: &mut LineLanes<T>,
+) {
+    let lines = group.len() / n;
+    debug_assert_eq!(group.len(), lines * n);
+    debug_assert!(factors.0.len() == n && factors.1.len() == n && factors.2.len() == n);
+    if lines == LINES_TOGETHER && n >= LANES {
+        if lanes.len() < n {
+            lanes.resize(n, [T::default(); LINES_TOGETHER]);
+        }
+        solve_lines_as_lanes(group, n, factors, &mut lanes[..n]);
+    } else {
+        for few in group.chunks_mut(LANES * n) {
+            solve_lines_interleaved(few, n, factors);
+        }
+    }
+}
+
+simd_dispatch!(pub(super) fn solve_lines_simd<T: SplineReal>(
+    group: &mut [T], n: usize, factors: &(Vec<T>, Vec<T>, Vec<T>), lanes: &mut LineLanes<T>
+) => solve_lines);
+
+/// [`solve_lines`] of a whole group: `lanes` (`n` entries) holds the group transposed.
+#[inline(always)]
+fn solve_lines_as_lanes<T: SplineReal>(
+    group: &mut [T],
+    n: usize,
+    (lower, pivot, upper): &(Vec<T>, Vec<T>, Vec<T>),
+    lanes: &mut [[T; LINES_TOGETHER]],
+) {
+    assert!(group.len() == LINES_TOGETHER * n && lanes.len() == n && n >= LANES);
+    let blocks = n / LANES;
+    let rows = group.as_mut_ptr();
+    let table = lanes.as_mut_ptr().cast::<T>();
+    for r in (0..LINES_TOGETHER).step_by(LANES) {
+        for b in 0..blocks {
+            // SAFETY: lines r..r + 8 of `group` hold samples 8b..8b + 8 (b < n / 8), and
+            // entries 8b..8b + 8 of `lanes` lanes r..r + 8, each 8 values at its stride.
+            unsafe {
+                T::transpose8(
+                    rows.add(r * n + b * LANES),
+                    n,
+                    table.add(b * LANES * LINES_TOGETHER + r),
+                    LINES_TOGETHER,
+                )
+            };
+        }
+    }
+    for (i, entry) in lanes.iter_mut().enumerate().skip(blocks * LANES) {
+        for (r, value) in entry.iter_mut().enumerate() {
+            *value = group[r * n + i];
+        }
+    }
+    // The recurrences of `solve_lines_interleaved`, a whole entry at a time.
+    for value in lanes[0].iter_mut() {
+        *value = (*value * pivot[0]).flush_tiny();
+    }
+    for i in 1..n {
+        let (l, p) = (lower[i], pivot[i]);
+        let above = lanes[i - 1];
+        for (value, &a) in lanes[i].iter_mut().zip(&above) {
+            *value = ((*value - l * a) * p).flush_tiny();
+        }
+    }
+    for i in (0..n - 1).rev() {
+        let u = upper[i];
+        let below = lanes[i + 1];
+        for (value, &b) in lanes[i].iter_mut().zip(&below) {
+            *value = (*value - u * b).flush_tiny();
+        }
+    }
+    let table = lanes.as_ptr().cast::<T>();
+    for r in (0..LINES_TOGETHER).step_by(LANES) {
+        for b in 0..blocks {
+            // SAFETY: as above, the other way round.
+            unsafe {
+                T::transpose8(
+                    table.add(b * LANES * LINES_TOGETHER + r),
+                    LINES_TOGETHER,
+                    rows.add(r * n + b * LANES),
+                    n,
+                )
+            };
+        }
+    }
+    for (i, entry) in lanes.iter().enumerate().skip(blocks * LANES) {
+        for (r, &value) in entry.iter().enumerate() {
+            group[r * n + i] = value;
+        }
+    }
+}
+
+/// [`solve_lines`] of up to eight lines, one value at a time, the lines interleaved step
+/// by step (independent chains).
+#[inline(always)]
+pub(super) fn solve_lines_interleaved<T: SplineReal>(
     group: &mut [T],
     n: usize,
     (lower, pivot, upper): &(Vec<T>, Vec<T>, Vec<T>),
 ) {
     let lines = group.len() / n;
-    debug_assert_eq!(group.len(), lines * n);
-    debug_assert!(lower.len() == n && pivot.len() == n && upper.len() == n);
     // Every step flushed as in `eliminate` and `substitute`: the same bits either way.
     for r in 0..lines {
         group[r * n] = (group[r * n] * pivot[0]).flush_tiny();
@@ -106,10 +214,6 @@ pub(super) fn solve_lines<T: SplineReal>(
         }
     }
 }
-
-simd_dispatch!(fn solve_lines_simd<T: SplineReal>(
-    group: &mut [T], n: usize, factors: &(Vec<T>, Vec<T>, Vec<T>)
-) => solve_lines);
 
 /// The forward elimination of step `i` of the system along a line, on a whole row of lanes
 /// at once (lane by lane the Thomas recurrence): `here` is row `i`, `above` row `i − 1`
@@ -246,11 +350,11 @@ pub(super) fn prefilter_from<T: SplineReal>(
         // the 1005 planes of 15 frames of 67 channels at 256², −30 – −50 % for RGB's 45).
         data.par_chunks_mut(plane)
             .enumerate()
-            .for_each(|(p, values)| {
+            .for_each_init(Vec::new, |lanes, (p, values)| {
                 if let Some(source) = source {
                     values.copy_from_slice(&source[p * plane..(p + 1) * plane]);
                 }
-                solve_plane_simd(values, width, &along_w, &along_h);
+                solve_plane_simd(values, width, &along_w, &along_h, lanes);
             });
         return;
     }
@@ -260,11 +364,11 @@ pub(super) fn prefilter_from<T: SplineReal>(
     data.par_chunks_mut(group)
         .enumerate()
         .with_min_len((PIXELS_PER_TASK / group).max(1))
-        .for_each(|(g, lines)| {
+        .for_each_init(Vec::new, |lanes, (g, lines)| {
             if let Some(source) = source {
                 lines.copy_from_slice(&source[g * group..g * group + lines.len()]);
             }
-            solve_lines_simd(lines, width, &along_w)
+            solve_lines_simd(lines, width, &along_w, lanes)
         });
     // Columns in blocks that keep a task's rows in cache.
     solve_all_columns(data, width, height, 64, &along_h);
@@ -277,16 +381,18 @@ pub(super) fn solve_plane<T: SplineReal>(
     width: usize,
     along_w: &(Vec<T>, Vec<T>, Vec<T>),
     along_h: &(Vec<T>, Vec<T>, Vec<T>),
+    lanes: &mut LineLanes<T>,
 ) {
     for lines in plane.chunks_mut(width * LINES_TOGETHER) {
-        solve_lines(lines, width, along_w);
+        solve_lines(lines, width, along_w, lanes);
     }
     solve_interleaved(plane, width, along_h);
 }
 
 simd_dispatch!(fn solve_plane_simd<T: SplineReal>(
     plane: &mut [T], width: usize,
-    along_w: &(Vec<T>, Vec<T>, Vec<T>), along_h: &(Vec<T>, Vec<T>, Vec<T>)
+    along_w: &(Vec<T>, Vec<T>, Vec<T>), along_h: &(Vec<T>, Vec<T>, Vec<T>),
+    lanes: &mut LineLanes<T>
 ) => solve_plane);
 
 /// Solves the system along the first axis of every `[height, width]` plane of `data`, in

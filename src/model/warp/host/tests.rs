@@ -542,3 +542,89 @@ fn the_prefilter_leaves_no_subnormal_coefficient() {
         );
     }
 }
+
+/// The row solves of a whole group of lines run with the lines as vector lanes (8 × 8
+/// transposes in and out, a tail of samples past the last whole block): the same bits as
+/// the lines solved one value at a time, in either precision, with values small enough to
+/// be flushed on the way.
+#[test]
+fn lines_solved_as_lanes_are_the_interleaved_solve_bit_for_bit() {
+    fn check<T: SplineReal + std::fmt::Debug>() {
+        for n in [8, 9, 16, 45, 64, 257] {
+            for transpose in [false, true] {
+                let factors = prefilter::Tridiagonal::mirrored(n, transpose).cast::<T>();
+                // A ramp with runs of tiny values and exact zeros (the flush's cases).
+                let group: Vec<T> = ramp(LINES_TOGETHER * n, 0.8)
+                    .iter()
+                    .enumerate()
+                    .map(|(i, &v)| match i % 29 {
+                        0..=4 => T::from_f64(v * 1e-40),
+                        5..=7 => T::from_f64(0.0),
+                        _ => T::from_f64(v),
+                    })
+                    .collect();
+                let mut want = group.clone();
+                for lines in want.chunks_mut(8 * n) {
+                    prefilter::solve_lines_interleaved(lines, n, &factors);
+                }
+                let mut got = group.clone();
+                // A stale, longer scratch from an earlier group must not matter.
+                let mut lanes = vec![[T::from_f64(f64::NAN); LINES_TOGETHER]; n + 3];
+                prefilter::solve_lines_simd(&mut got, n, &factors, &mut lanes);
+                let same = want
+                    .iter()
+                    .zip(&got)
+                    .all(|(a, b)| a.to_f64().to_bits() == b.to_f64().to_bits());
+                assert!(same, "n = {n}, transpose {transpose}: not the same bits");
+            }
+        }
+    }
+    check::<f32>();
+    check::<f64>();
+}
+
+/// Planes tall enough for whole groups of lines as lanes (and a last group that is not):
+/// the planar prefilter and the channels-last one still agree bit for bit, forwards, and
+/// the planar adjoint is the dense prefilter's transpose.
+#[test]
+fn tall_planes_prefilter_the_same_bits_planar_and_channels_last() {
+    for (c, h, w) in [(1, 70, 45), (3, 64, 8), (2, 33, 5), (5, 40, 33)] {
+        let f: Vec<f32> = ramp(c * h * w, 0.5).iter().map(|&v| v as f32).collect();
+        let mut planar = f.clone();
+        prefilter(&mut planar, h, w, false);
+        let mut table = vec![f32::NAN; f.len()];
+        prefilter_channels_last(&f, &mut table, (1, c, h, w));
+        assert_eq!(channels_last(&planar, c, h * w), table, "{c} × {h} × {w}");
+        let g = ramp(c * h * w, 1.1);
+        let mut pt = g.clone();
+        prefilter(&mut pt, h, w, true);
+        for p in 0..c {
+            let at = p * h * w..(p + 1) * h * w;
+            let want = dense_transpose_prefilter(&g[at.clone()], h, w);
+            for (a, b) in pt[at].iter().zip(&want) {
+                assert!((a - b).abs() < 1e-12, "{c} × {h} × {w}: {a} vs {b}");
+            }
+        }
+    }
+}
+
+/// `Pᵀ g` by the dense prefilter matrices, `(P_h ⊗ P_w)ᵀ g`.
+fn dense_transpose_prefilter(g: &[f64], h: usize, w: usize) -> Vec<f64> {
+    let (ph, pw) = (
+        crate::model::stencil::bspline_prefilter(h),
+        crate::model::stencil::bspline_prefilter(w),
+    );
+    let mut out = vec![0.0; h * w];
+    for k in 0..h {
+        for l in 0..w {
+            let mut acc = 0.0;
+            for i in 0..h {
+                for j in 0..w {
+                    acc += ph.get(i, k) * pw.get(j, l) * g[i * w + j];
+                }
+            }
+            out[k * w + l] = acc;
+        }
+    }
+    out
+}
