@@ -116,11 +116,35 @@ impl LinearisedData {
         phi_tilde: Tensor<4>,
         kappa: f64,
     ) -> Self {
+        Self::around_given(
+            grid, bspline, sobel, coeffs_k, f_km1, phi_tilde, kappa, None,
+        )
+    }
+
+    /// [`around`](Self::around), given `T[f_k, φ̃]` where the caller has it (`warped`: the
+    /// values `bspline.interpolate(coeffs_k, phi_tilde)` gives, bit for bit): the fused
+    /// kernel reads it instead of evaluating the warp again. A restart of SPEC §6's
+    /// safeguard linearises at `φ_k`, whose warp the safeguard has just evaluated for
+    /// `e_k(φ_k)`.
+    ///
+    /// # Shapes
+    /// - as [`around`](Self::around); `warped`: `[N, C, H, W]`
+    #[allow(clippy::too_many_arguments)]
+    pub fn around_given(
+        grid: &Grid,
+        bspline: &BSpline,
+        sobel: &Sobel,
+        coeffs_k: Tensor<4>,
+        f_km1: Tensor<4>,
+        phi_tilde: Tensor<4>,
+        kappa: f64,
+        warped: Option<Tensor<4>>,
+    ) -> Self {
         if !grid.fused_linearisation() {
             let lin = linearise(bspline, sobel, coeffs_k, f_km1, phi_tilde.clone());
             return Self::new(grid, lin, phi_tilde, kappa);
         }
-        let warped = bspline.interpolate(coeffs_k, phi_tilde.clone());
+        let warped = warped.unwrap_or_else(|| bspline.interpolate(coeffs_k, phi_tilde.clone()));
         Self::from_moments(grid, slopes::moments(warped, f_km1, phi_tilde), kappa)
     }
 

@@ -262,15 +262,21 @@ impl Deformations<'_> {
             .collect()
     }
 
-    /// Linearises the steps of `items` around `point` (SPEC §6 step 2).
+    /// Linearises the steps of `items` around `point` (SPEC §6 step 2); `warped`, when
+    /// given, is `T[f_k, point]` of each item, already evaluated.
     ///
     /// # Errors
     ///
     /// [`Error::NonFinite`] if some `S_k(φ̃_k)` or its gradient is not finite.
     ///
     /// # Shapes
-    /// - `point`: `[items.len(), 2, H, W]`
-    fn linearise_at(&self, point: Tensor<4>, items: &[usize]) -> Result<Linearised> {
+    /// - `point`: `[items.len(), 2, H, W]`; `warped`: `[items.len(), C, H, W]`
+    fn linearise_at(
+        &self,
+        point: Tensor<4>,
+        items: &[usize],
+        warped: Option<Tensor<4>>,
+    ) -> Result<Linearised> {
         let ipalm = self.ipalm;
         let grid = &ipalm.grid;
         let leaf = point.clone().detach().require_grad();
@@ -305,7 +311,7 @@ impl Deformations<'_> {
         }
         let p = ipalm.energy.params();
         let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
-        let data = LinearisedData::around(
+        let data = LinearisedData::around_given(
             grid,
             ipalm.energy.bspline(),
             &ipalm.sobel,
@@ -313,6 +319,7 @@ impl Deformations<'_> {
             pick(&self.before, items),
             point.clone(),
             kappa,
+            warped,
         );
         Ok(Linearised {
             items: items.to_vec(),
@@ -481,7 +488,7 @@ impl Ipalm {
             (phi.clone(), vec![false; n])
         };
         let all = indices(n, |_| true);
-        let lin = problem.linearise_at(point, &all)?;
+        let lin = problem.linearise_at(point, &all, None)?;
         let mut pending: Vec<Pending> = streak
             .iter()
             .map(|&streak| Pending {
@@ -619,7 +626,16 @@ impl Ipalm {
         });
         let mut restarted_lin = None;
         if !restart.is_empty() {
-            let lin = problem.linearise_at(pick(phi, &restart), &restart)?;
+            // The restart linearises at φ_k, whose warp e_k(φ_k) has just evaluated.
+            let at: Vec<usize> = restart
+                .iter()
+                .map(|i| live.binary_search(i).expect("a restarted step is live"))
+                .collect();
+            let lin = problem.linearise_at(
+                pick(phi, &restart),
+                &restart,
+                Some(pick(&reference_warp, &at)),
+            )?;
             for (&i, search) in restart.iter().zip(problem.search(&lin, stored, streak)?) {
                 pending[i].step.restarted = true;
                 pending[i].found(search);
