@@ -104,33 +104,16 @@ impl LinearisedData {
     /// `κ = K / (δ · C_tot · H · W)`: [`linearise`] then [`new`](Self::new), or on a grid
     /// with the fused kernel, the same moments in one pass ([`crate::model::slopes`]).
     ///
-    /// # Shapes
-    /// - `coeffs_k`: `P f_k`, `[N, C, H, W]`; `f_km1`: `[N, C, H, W]`; `phi_tilde`:
-    ///   `[N, 2, H, W]`
-    pub fn around(
-        grid: &Grid,
-        bspline: &BSpline,
-        sobel: &Sobel,
-        coeffs_k: Tensor<4>,
-        f_km1: Tensor<4>,
-        phi_tilde: Tensor<4>,
-        kappa: f64,
-    ) -> Self {
-        Self::around_given(
-            grid, bspline, sobel, coeffs_k, f_km1, phi_tilde, kappa, None,
-        )
-    }
-
-    /// [`around`](Self::around), given `T[f_k, φ̃]` where the caller has it (`warped`: the
-    /// values `bspline.interpolate(coeffs_k, phi_tilde)` gives, bit for bit): the fused
-    /// kernel reads it instead of evaluating the warp again. A restart of SPEC §6's
-    /// safeguard linearises at `φ_k`, whose warp the safeguard has just evaluated for
-    /// `e_k(φ_k)`.
+    /// `warped`, where the caller has it, is `T[f_k, φ̃]` (the values
+    /// `bspline.interpolate(coeffs_k, phi_tilde)` gives, bit for bit): the fused kernel
+    /// reads it instead of evaluating the warp again. A restart of SPEC §6's safeguard
+    /// linearises at `φ_k`, whose warp the safeguard has just evaluated for `e_k(φ_k)`.
     ///
     /// # Shapes
-    /// - as [`around`](Self::around); `warped`: `[N, C, H, W]`
+    /// - `coeffs_k`: `P f_k`, `[N, C, H, W]`; `f_km1`: `[N, C, H, W]`; `phi_tilde`:
+    ///   `[N, 2, H, W]`; `warped`: `[N, C, H, W]`
     #[allow(clippy::too_many_arguments)]
-    pub fn around_given(
+    pub fn around(
         grid: &Grid,
         bspline: &BSpline,
         sobel: &Sobel,

@@ -67,6 +67,7 @@ fn prox(backend: Backend) {
         input("f_km1"),
         phi_tilde.clone(),
         kappa,
+        None,
     );
     for (i, l) in [golden.param("L0"), golden.param("L1")]
         .into_iter()
