@@ -41,9 +41,35 @@ pub trait DecisionOps: Backend {
     /// `Σ (a − b)²` over every entry (shapes equal): the difference in the tensors' own
     /// precision, as `a − b` would be, its square and the sum in float64.
     fn decision_distance2(a: FloatTensor<Self>, b: FloatTensor<Self>) -> FloatTensor<Self> {
-        let d = Self::float_cast(Self::float_sub(a, b), FloatDType::F64);
-        Self::float_sum(Self::float_mul(d.clone(), d))
+        composed_distance2::<Self>(a, b)
     }
+    /// `[Σ (a − b)², Σ (a − c)²]` (shapes equal): two [`decision_distance2`] from one
+    /// tensor, each the same value bit for bit.
+    ///
+    /// [`decision_distance2`]: DecisionOps::decision_distance2
+    fn decision_distance2_pair(
+        a: FloatTensor<Self>,
+        b: FloatTensor<Self>,
+        c: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        Self::float_cat(
+            vec![
+                Self::decision_distance2(a.clone(), b),
+                Self::decision_distance2(a, c),
+            ],
+            0,
+        )
+    }
+}
+
+/// [`DecisionOps::decision_distance2`] composed of primitives: what the backends without a
+/// kernel of their own run (here and in fused ops' default bodies), `[1]` float64.
+pub(crate) fn composed_distance2<B: Backend>(
+    a: FloatTensor<B>,
+    b: FloatTensor<B>,
+) -> FloatTensor<B> {
+    let d = B::float_cast(B::float_sub(a, b), FloatDType::F64);
+    B::float_sum(B::float_mul(d.clone(), d))
 }
 
 #[cfg(feature = "ndarray")]
@@ -84,6 +110,25 @@ pub fn distance2<const D: usize>(a: Tensor<D>, b: Tensor<D>) -> Tensor<1> {
     ))
 }
 
+/// `[Σ (a − b)², Σ (a − c)²]`, `[2]`: [`distance2`] of `a` with `b` and with `c`, each the
+/// same value bit for bit, `a` read once where the backend fuses the two (a backtracking
+/// trial's warp against the previous frame and against the extrapolated point's warp).
+///
+/// # Panics
+///
+/// If the shapes differ.
+pub fn distance2_pair<const D: usize>(a: Tensor<D>, b: Tensor<D>, c: Tensor<D>) -> Tensor<1> {
+    assert!(
+        a.dims() == b.dims() && a.dims() == c.dims(),
+        "decision distances: shapes differ"
+    );
+    Tensor::<1>::from_dispatch(Dispatch::decision_distance2_pair(
+        a.detach().into_dispatch(),
+        b.detach().into_dispatch(),
+        c.detach().into_dispatch(),
+    ))
+}
+
 /// `Σ t²`, `[1]`: [`dot`] of `t` with itself.
 pub fn sum_squares<const D: usize>(t: Tensor<D>) -> Tensor<1> {
     dot(t.clone(), t)
@@ -102,7 +147,7 @@ pub(crate) mod flex {
 
     /// Values per task: a task's float64 partial sum then adds to the others in a fixed
     /// order, so the result does not depend on the thread count.
-    const CHUNK: usize = 1 << 14;
+    pub(crate) const CHUNK: usize = 1 << 14;
 
     /// The float64 term a reduction adds per pair of values.
     #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -236,6 +281,22 @@ pub(crate) mod flex {
         partial.iter().sum()
     }
 
+    /// [`reduce`] of `(a, b)` and of `(a, c)` with the same term, each chunk's two folds in
+    /// one task (the chunk of `a` is still in cache for the second): the same chunks and
+    /// lanes as two calls, so the same bits.
+    pub(crate) fn reduce_pair<T: Value>(a: &[T], b: &[T], c: &[T], term: Term) -> [f64; 2] {
+        let partial: Vec<(f64, f64)> = a
+            .par_chunks(CHUNK)
+            .zip(b.par_chunks(CHUNK))
+            .zip(c.par_chunks(CHUNK))
+            .map(|((a, b), c)| (T::fold(a, b, term), T::fold(a, c, term)))
+            .collect();
+        [
+            partial.iter().map(|p| p.0).sum(),
+            partial.iter().map(|p| p.1).sum(),
+        ]
+    }
+
     fn dot(a: &HostView, b: &HostView) -> f64 {
         match a.dtype() {
             DType::F32 => reduce(a.values::<f32>(), b.values::<f32>(), Term::Product),
@@ -286,6 +347,30 @@ pub(crate) mod flex {
             assert_eq!(a.dtype(), b.dtype(), "decision distance: dtypes differ");
             scalar(distance2(&a, &b))
         }
+
+        fn decision_distance2_pair(a: FlexTensor, b: FlexTensor, c: FlexTensor) -> FlexTensor {
+            let (a, b, c) = (HostView::new(a), HostView::new(b), HostView::new(c));
+            assert!(
+                a.dtype() == b.dtype() && a.dtype() == c.dtype(),
+                "decision distances: dtypes differ"
+            );
+            let pair = match a.dtype() {
+                DType::F32 => reduce_pair(
+                    a.values::<f32>(),
+                    b.values::<f32>(),
+                    c.values::<f32>(),
+                    Term::SquaredDifference,
+                ),
+                DType::F64 => reduce_pair(
+                    a.values::<f64>(),
+                    b.values::<f64>(),
+                    c.values::<f64>(),
+                    Term::SquaredDifference,
+                ),
+                other => panic!("decision sums read float32 or float64, not {other:?}"),
+            };
+            FlexTensor::from_data(TensorData::new(pair.to_vec(), [2]))
+        }
     }
 
     #[cfg(test)]
@@ -312,6 +397,28 @@ pub(crate) mod flex {
                 let exact: f64 = a.iter().zip(&b).map(|(&x, &y)| term_of(x, y, term)).sum();
                 assert!((want - exact).abs() <= 1e-12 * exact.abs(), "{term:?}");
             }
+        }
+
+        /// The pair of distances is the two single ones bit for bit, over several chunks
+        /// with a short last one.
+        #[test]
+        fn a_pair_of_distances_is_the_two_distances_bit_for_bit() {
+            let len = 2 * CHUNK + 1003;
+            let wave = |f: usize, m: usize, s: f32| -> Vec<f32> {
+                (0..len).map(|i| ((i * f) % m) as f32 * s - 0.4).collect()
+            };
+            let (a, b, c) = (
+                wave(37, 101, 0.0131),
+                wave(11, 89, 0.0217),
+                wave(7, 97, 0.019),
+            );
+            let pair = reduce_pair(&a, &b, &c, Term::SquaredDifference);
+            let single = [
+                reduce(&a, &b, Term::SquaredDifference),
+                reduce(&a, &c, Term::SquaredDifference),
+            ];
+            assert_eq!(pair.map(f64::to_bits), single.map(f64::to_bits));
+            assert_ne!(pair[0], pair[1]);
         }
     }
 }
@@ -350,6 +457,21 @@ mod autodiff {
             let (a, _) = a.into_parts();
             let (b, _) = b.into_parts();
             FloatTensor::<Self>::new(B::decision_distance2(a, b))
+        }
+
+        fn decision_distance2_pair(
+            a: FloatTensor<Self>,
+            b: FloatTensor<Self>,
+            c: FloatTensor<Self>,
+        ) -> FloatTensor<Self> {
+            assert!(
+                !a.is_tracked() && !b.is_tracked() && !c.is_tracked(),
+                "a decision sum is not differentiable"
+            );
+            let (a, _) = a.into_parts();
+            let (b, _) = b.into_parts();
+            let (c, _) = c.into_parts();
+            FloatTensor::<Self>::new(B::decision_distance2_pair(a, b, c))
         }
     }
 }

@@ -176,6 +176,45 @@ impl Grid {
         )
     }
 
+    /// [`decision_distance2_blocks`](Self::decision_distance2_blocks) of `a` with `b` and of
+    /// `a` with `c`, each bit for bit what that call gives; where the sums are float64 each
+    /// item's block is one pass reading `a` once (a feature trial compares its warp with
+    /// `f_{k−1}` and with the extrapolated point's warp: 1 frame read fewer per trial).
+    ///
+    /// # Shapes
+    /// - `a`, `b`, `c`: `[N, C, H, W]`; `blocks`: ranges of channels; each output `[N · B]`
+    pub fn decision_distance2_blocks_pair(
+        &self,
+        a: Tensor<4>,
+        b: Tensor<4>,
+        c: Tensor<4>,
+        blocks: &[Range<usize>],
+    ) -> [Tensor<1>; 2] {
+        if self.accumulation() == Accumulation::Float32 {
+            return [
+                self.decision_distance2_blocks(a.clone(), b, blocks),
+                self.decision_distance2_blocks(a, c, blocks),
+            ];
+        }
+        let n = a.dims()[0];
+        let pairs = Tensor::cat(
+            (0..n)
+                .flat_map(|i| blocks.iter().map(move |block| (i, block)))
+                .map(|(i, block)| {
+                    let part = |t: &Tensor<4>| {
+                        t.clone()
+                            .narrow(0, i, 1)
+                            .narrow(1, block.start, block.len())
+                    };
+                    decision::distance2_pair(part(&a), part(&b), part(&c))
+                })
+                .collect(),
+            0,
+        )
+        .reshape([n * blocks.len(), 2]);
+        [0, 1].map(|j| pairs.clone().narrow(1, j, 1).reshape([n * blocks.len()]))
+    }
+
     /// [`decision_norm2`](Self::decision_norm2) of each item and channel block: `[N · B]`, as
     /// [`decision_distance2_blocks`](Self::decision_distance2_blocks).
     pub fn decision_norm2_blocks(&self, t: Tensor<4>, blocks: &[Range<usize>]) -> Tensor<1> {

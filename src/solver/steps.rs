@@ -23,10 +23,13 @@ use crate::error::{Error, Result};
 use crate::model::deformation::{admissible_each, min_det_each};
 use crate::model::energy::data::data_term_given;
 use crate::model::energy::regularizer::{mean_density, weighted_density};
+use crate::model::grid::Accumulation;
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{DeformationStep, FeatureStep, Ipalm, LevelState, read_groups};
 use crate::solver::prox::{LinearisedData, pick};
-use crate::solver::update_op::{descend, extrapolate};
+use crate::solver::update_op::{
+    descend, descend_distance2, extrapolate, extrapolate_distance2, fuses_distances,
+};
 
 /// Item `i` of a stacked tensor, `[1, …]` (the tensor itself if it holds one item).
 fn item<const D: usize>(t: &Tensor<D>, i: usize) -> Tensor<D> {
@@ -311,7 +314,7 @@ impl Deformations<'_> {
         }
         let p = ipalm.energy.params();
         let kappa = self.steps / (p.delta * ipalm.layout.channels() as f64 * grid.pixels() as f64);
-        let data = LinearisedData::around_given(
+        let data = LinearisedData::around(
             grid,
             ipalm.energy.bspline(),
             &ipalm.sobel,
@@ -734,12 +737,11 @@ impl Ipalm {
         let delta = self.energy.params().delta;
         let steps = state.steps() as f64;
         let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
+        // Where the decision sums are float64, the gradient steps (the extrapolation and
+        // each trial's) fold the new frame's distance to T[f_{k+1}, φ_{k+1}] as they write
+        // it: the same sums, one frame read fewer each.
+        let fused = grid.accumulation() == Accumulation::Float64 && fuses_distances(&blocks);
         let f_k = take(&state.f, ks, 0);
-        let f_tilde = if self.config.beta > 0.0 {
-            extrapolate(f_k.clone(), take(&state.f_prev, ks, 0), self.config.beta)
-        } else {
-            f_k.clone()
-        };
         // φ_k (stored at k − 1) is already this sweep's, φ_{k+1} (at k) still the previous
         // one. Both stay fixed for the whole step: φ_k's stencil serves every trial, and
         // T[f_{k+1}, φ_{k+1}] does not depend on f_k at all.
@@ -753,6 +755,23 @@ impl Ipalm {
             FrameProducts { coeffs, warped }
         });
         let before = take(&state.f, ks, -1);
+        let (f_tilde, fixed) = if self.config.beta > 0.0 {
+            let previous = take(&state.f_prev, ks, 0);
+            if fused {
+                let (f_tilde, fixed) = extrapolate_distance2(
+                    f_k.clone(),
+                    previous,
+                    self.config.beta,
+                    &blocks,
+                    next.warped.clone(),
+                );
+                (f_tilde, Some(fixed))
+            } else {
+                (extrapolate(f_k.clone(), previous, self.config.beta), None)
+            }
+        } else {
+            (f_k.clone(), None)
+        };
 
         let x_tilde = f_tilde.detach();
         let leaf = x_tilde.clone().require_grad();
@@ -763,7 +782,9 @@ impl Ipalm {
         // the values of Q's data terms, whose ops then only differentiate (the residuals are
         // never tensors). The Q_k are independent: the gradient of their sum is each one's.
         let moved = grid.decision_distance2_blocks(warped_tilde.clone(), before.clone(), &blocks);
-        let fixed = grid.decision_distance2_blocks(next.warped.clone(), x_tilde.clone(), &blocks);
+        let fixed = fixed.unwrap_or_else(|| {
+            grid.decision_distance2_blocks(next.warped.clone(), x_tilde.clone(), &blocks)
+        });
         let per_item = |t: &Tensor<1>| t.clone().reshape([n, nb]).sum_dim(1).reshape([n]);
         let q = (data_term_given(warped, before.clone(), c_tot, per_item(&moved))
             + data_term_given(next.warped.clone(), leaf.clone(), c_tot, per_item(&fixed)))
@@ -815,33 +836,36 @@ impl Ipalm {
                 .flat_map(|&i| (i * nb..(i + 1) * nb).map(|e| trial[e].or(accepted[e])))
                 .map(|l| l.unwrap_or(f64::INFINITY))
                 .collect();
-            let candidates = descend(pick(&x_tilde, &items), pick(&grad, &items), &l, &blocks);
+            let (candidates, to_next) = if fused {
+                descend_distance2(
+                    pick(&x_tilde, &items),
+                    pick(&grad, &items),
+                    &l,
+                    &blocks,
+                    pick(&next.warped, &items),
+                )
+            } else {
+                let candidates = descend(pick(&x_tilde, &items), pick(&grad, &items), &l, &blocks);
+                let to_next = grid.decision_distance2_blocks(
+                    pick(&next.warped, &items),
+                    candidates.clone(),
+                    &blocks,
+                );
+                (candidates, to_next)
+            };
             let coeffs = bspline.coefficients(candidates.clone());
             let trial_warped = if items.len() == n {
                 sampler.sample(coeffs.clone())
             } else {
                 bspline.sampler(pick(&phis, &items)).sample(coeffs.clone())
             };
-            let [to_prev, to_next, moved] = read_groups(
-                grid,
-                [
-                    grid.decision_distance2_blocks(
-                        trial_warped.clone(),
-                        pick(&before, &items),
-                        &blocks,
-                    ),
-                    grid.decision_distance2_blocks(
-                        pick(&next.warped, &items),
-                        candidates.clone(),
-                        &blocks,
-                    ),
-                    grid.decision_distance2_blocks(
-                        trial_warped.clone(),
-                        pick(&warped_tilde, &items),
-                        &blocks,
-                    ),
-                ],
+            let [to_prev, moved] = grid.decision_distance2_blocks_pair(
+                trial_warped.clone(),
+                pick(&before, &items),
+                pick(&warped_tilde, &items),
+                &blocks,
             );
+            let [to_prev, to_next, moved] = read_groups(grid, [to_prev, to_next, moved]);
             for (j, &i) in items.iter().enumerate() {
                 for b in 0..nb {
                     let (e, at) = (i * nb + b, j * nb + b);

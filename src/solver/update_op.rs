@@ -23,7 +23,7 @@ use std::ops::Range;
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
-use burn::tensor::{Scalar, Shape, Tensor, TensorData};
+use burn::tensor::{Scalar, Shape, Slice, Tensor, TensorData};
 
 /// The updates' primitives.
 #[backend_extension(
@@ -54,6 +54,79 @@ pub trait UpdateOps: Backend {
         let s = Self::float_reshape(s, Shape::new([shape[0], shape[1], 1, 1]));
         Self::float_sub(x, Self::float_mul(g, s))
     }
+    /// [`descend`](UpdateOps::descend), and the float64 `Σ (r − out)²` of each item's
+    /// channel blocks `0..split` and `split..C` (one block where `split = C`), `[N · B]`;
+    /// shapes as in [`descend_distance2`].
+    fn descend_distance2(
+        x: FloatTensor<Self>,
+        g: FloatTensor<Self>,
+        s: FloatTensor<Self>,
+        r: FloatTensor<Self>,
+        split: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let out = Self::descend(x, g, s);
+        let sums = composed_block_distances::<Self>(r, out.clone(), split);
+        (out, sums)
+    }
+    /// [`extrapolate`](UpdateOps::extrapolate), and the sums of
+    /// [`descend_distance2`](UpdateOps::descend_distance2).
+    fn extrapolate_distance2(
+        x: FloatTensor<Self>,
+        previous: FloatTensor<Self>,
+        beta: f64,
+        r: FloatTensor<Self>,
+        split: usize,
+    ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+        let out = Self::extrapolate(x, previous, beta);
+        let sums = composed_block_distances::<Self>(r, out.clone(), split);
+        (out, sums)
+    }
+}
+
+/// The channel ranges of the blocks `0..split`, `split..c` (the second only if not empty).
+fn split_blocks(c: usize, split: usize) -> Vec<Range<usize>> {
+    assert!(
+        (1..=c).contains(&split),
+        "update: block split {split} of {c} channels"
+    );
+    [0..split, split..c]
+        .into_iter()
+        .filter(|block| !block.is_empty())
+        .collect()
+}
+
+/// The sums of [`UpdateOps::descend_distance2`] of the backends without a kernel: each item's
+/// block through [`crate::model::decision::composed_distance2`] on its own, the values
+/// [`crate::model::grid::Grid::decision_distance2_blocks`] gives there, bit for bit.
+fn composed_block_distances<B: Backend>(
+    r: FloatTensor<B>,
+    out: FloatTensor<B>,
+    split: usize,
+) -> FloatTensor<B> {
+    let shape = out.shape();
+    let [n, c, h, w] = [shape[0], shape[1], shape[2], shape[3]];
+    let sums = (0..n)
+        .flat_map(|i| {
+            split_blocks(c, split)
+                .into_iter()
+                .map(move |block| (i, block))
+        })
+        .map(|(i, block)| {
+            let part = |t: &FloatTensor<B>| {
+                B::float_slice(
+                    t.clone(),
+                    &[
+                        Slice::from(i..i + 1),
+                        Slice::from(block.clone()),
+                        Slice::from(0..h),
+                        Slice::from(0..w),
+                    ],
+                )
+            };
+            crate::model::decision::composed_distance2::<B>(part(&r), part(&out))
+        })
+        .collect();
+    B::float_cat(sums, 0)
 }
 
 #[cfg(feature = "ndarray")]
@@ -98,8 +171,24 @@ pub fn descend(
     lipschitz: &[f64],
     blocks: &[Range<usize>],
 ) -> Tensor<4> {
-    assert_eq!(x.dims(), g.dims(), "gradient step: shapes differ");
-    let [n, c, _, _] = x.dims();
+    let s = step_factors(&x, g.dims(), lipschitz, blocks);
+    Tensor::from_dispatch(Dispatch::descend(
+        x.detach().into_dispatch(),
+        g.detach().into_dispatch(),
+        s.into_dispatch(),
+    ))
+}
+
+/// The factors `1/L` of each item's channels, `[N · C]`, for [`descend`]'s `x` and the shape
+/// of `g` (checked as [`descend`] says).
+fn step_factors(
+    x: &Tensor<4>,
+    g: [usize; 4],
+    lipschitz: &[f64],
+    blocks: &[Range<usize>],
+) -> Tensor<1> {
+    assert_eq!(x.dims(), g, "gradient step: shapes differ");
+    let [n, c, _, _] = g;
     assert!(
         blocks.first().is_some_and(|b| b.start == 0)
             && blocks.last().is_some_and(|b| b.end == c)
@@ -120,12 +209,88 @@ pub fn descend(
                 .flat_map(|(l, block)| std::iter::repeat_n(1.0 / l, block.len()))
         })
         .collect();
-    let s = Tensor::<1>::from_data(TensorData::new(inverse, [n * c]), (&x.device(), x.dtype()));
-    Tensor::from_dispatch(Dispatch::descend(
+    Tensor::<1>::from_data(TensorData::new(inverse, [n * c]), (&x.device(), x.dtype()))
+}
+
+/// [`descend`] and the float64 `Σ (r − x_new)²` of each item and block, `[N · B]`
+/// item-major: the values [`descend`] then
+/// [`crate::model::grid::Grid::decision_distance2_blocks`]`(r, x_new, blocks)` give, bit for
+/// bit, but on flex in one pass (each chunk of the new frame folded while it is in cache).
+/// For grids whose decision sums are float64; `blocks` are `0..s` and `s..C`, or `0..C`.
+///
+/// # Shapes
+/// - `x`, `g`, `r`, the new frame: `[N, C, H, W]`; `lipschitz` as in [`descend`]
+///
+/// # Panics
+///
+/// As [`descend`]; if `r`'s shape differs, or the blocks are not of that form.
+pub fn descend_distance2(
+    x: Tensor<4>,
+    g: Tensor<4>,
+    lipschitz: &[f64],
+    blocks: &[Range<usize>],
+    r: Tensor<4>,
+) -> (Tensor<4>, Tensor<1>) {
+    assert_eq!(x.dims(), r.dims(), "gradient step: shapes differ");
+    let s = step_factors(&x, g.dims(), lipschitz, blocks);
+    let (out, sums) = Dispatch::descend_distance2(
         x.detach().into_dispatch(),
         g.detach().into_dispatch(),
         s.into_dispatch(),
-    ))
+        r.detach().into_dispatch(),
+        split_of(blocks),
+    );
+    (Tensor::from_dispatch(out), Tensor::from_dispatch(sums))
+}
+
+/// [`extrapolate`] and the sums of [`descend_distance2`], bit for bit [`extrapolate`] then
+/// [`crate::model::grid::Grid::decision_distance2_blocks`]`(r, x̃, blocks)`.
+///
+/// # Shapes
+/// - `x`, `previous`, `r`, `x̃`: `[N, C, H, W]`
+///
+/// # Panics
+///
+/// If the shapes differ, or the blocks are not those of [`descend_distance2`].
+pub fn extrapolate_distance2(
+    x: Tensor<4>,
+    previous: Tensor<4>,
+    beta: f64,
+    blocks: &[Range<usize>],
+    r: Tensor<4>,
+) -> (Tensor<4>, Tensor<1>) {
+    assert!(
+        x.dims() == previous.dims() && x.dims() == r.dims(),
+        "extrapolation: shapes differ"
+    );
+    assert_eq!(
+        blocks.last().map(|b| b.end),
+        Some(x.dims()[1]),
+        "extrapolation: blocks {blocks:?}"
+    );
+    let (out, sums) = Dispatch::extrapolate_distance2(
+        x.detach().into_dispatch(),
+        previous.detach().into_dispatch(),
+        beta,
+        r.detach().into_dispatch(),
+        split_of(blocks),
+    );
+    (Tensor::from_dispatch(out), Tensor::from_dispatch(sums))
+}
+
+/// Whether [`descend_distance2`] and [`extrapolate_distance2`] take these blocks: one block
+/// of every channel, or two.
+pub fn fuses_distances(blocks: &[Range<usize>]) -> bool {
+    matches!(blocks.len(), 1 | 2) && blocks[0].start == 0
+}
+
+/// The channel where the second block starts (`C` for one block).
+fn split_of(blocks: &[Range<usize>]) -> usize {
+    assert!(
+        fuses_distances(blocks) && blocks.windows(2).all(|w| w[0].end == w[1].start),
+        "fused distances: blocks {blocks:?} are not 0..s, s..C"
+    );
+    blocks[0].end
 }
 
 #[cfg(feature = "flex")]
@@ -135,10 +300,11 @@ mod flex {
     use burn::tensor::{DType, TensorData};
 
     use super::UpdateOps;
-    use crate::model::cpu::{Real, combine};
+    use crate::model::cpu::{Real, combine, combine_distance2};
+    use crate::model::decision::flex::Value;
     use crate::model::host_view::HostView;
 
-    trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
+    trait Kernel: Real + Value + Send + burn::tensor::Element + bytemuck::Pod {}
     impl Kernel for f32 {}
     impl Kernel for f64 {}
 
@@ -160,6 +326,64 @@ mod flex {
             |x, g, s| x - g * s,
         );
         TensorData::new(out, x.shape())
+    }
+
+    /// The lengths of the fused sums' regions: each item's blocks `0..split`, `split..C`.
+    fn regions(shape: &[usize], split: usize) -> Vec<usize> {
+        let [n, c, h, w] = [shape[0], shape[1], shape[2], shape[3]];
+        let blocks = super::split_blocks(c, split);
+        (0..n)
+            .flat_map(|_| blocks.iter().map(|block| block.len() * h * w))
+            .collect()
+    }
+
+    /// The new frame and its sums as flex tensors.
+    fn with_sums(
+        out: Vec<impl Kernel>,
+        sums: Vec<f64>,
+        shape: Vec<usize>,
+    ) -> (FlexTensor, FlexTensor) {
+        let count = sums.len();
+        (
+            FlexTensor::from_data(TensorData::new(out, shape)),
+            FlexTensor::from_data(TensorData::new(sums, [count])),
+        )
+    }
+
+    fn descend_distance2_typed<T: Kernel>(
+        x: &HostView,
+        g: &HostView,
+        s: &HostView,
+        r: &HostView,
+        split: usize,
+    ) -> (FlexTensor, FlexTensor) {
+        let (out, sums) = combine_distance2(
+            x.values::<T>(),
+            g.values::<T>(),
+            s.values::<T>(),
+            r.values::<T>(),
+            &regions(&x.shape(), split),
+            |x, g, s| x - g * s,
+        );
+        with_sums(out, sums, x.shape())
+    }
+
+    fn extrapolate_distance2_typed<T: Kernel>(
+        x: &HostView,
+        previous: &HostView,
+        beta: f64,
+        r: &HostView,
+        split: usize,
+    ) -> (FlexTensor, FlexTensor) {
+        let (out, sums) = combine_distance2(
+            x.values::<T>(),
+            previous.values::<T>(),
+            &[T::from_f64(beta)],
+            r.values::<T>(),
+            &regions(&x.shape(), split),
+            |x, p, beta| x + (x - p) * beta,
+        );
+        with_sums(out, sums, x.shape())
     }
 
     macro_rules! typed {
@@ -190,6 +414,53 @@ mod flex {
                 x.dtype()
             );
             FlexTensor::from_data(typed!(x.dtype(), descend_typed(&x, &g, &s)))
+        }
+
+        fn descend_distance2(
+            x: FlexTensor,
+            g: FlexTensor,
+            s: FlexTensor,
+            r: FlexTensor,
+            split: usize,
+        ) -> (FlexTensor, FlexTensor) {
+            let (x, g) = HostView::pair(x, g, "gradient step");
+            let (s, r) = (HostView::new(s), HostView::new(r));
+            assert!(
+                s.dtype() == x.dtype() && s.shape() == [x.shape()[0] * x.shape()[1]],
+                "gradient step: factors {:?} {:?} for {:?} {:?}",
+                s.shape(),
+                s.dtype(),
+                x.shape(),
+                x.dtype()
+            );
+            assert!(
+                r.shape() == x.shape() && r.dtype() == x.dtype(),
+                "gradient step: distances to {:?} {:?}",
+                r.shape(),
+                r.dtype()
+            );
+            typed!(x.dtype(), descend_distance2_typed(&x, &g, &s, &r, split))
+        }
+
+        fn extrapolate_distance2(
+            x: FlexTensor,
+            previous: FlexTensor,
+            beta: f64,
+            r: FlexTensor,
+            split: usize,
+        ) -> (FlexTensor, FlexTensor) {
+            let (x, previous) = HostView::pair(x, previous, "extrapolation");
+            let r = HostView::new(r);
+            assert!(
+                r.shape() == x.shape() && r.dtype() == x.dtype(),
+                "extrapolation: distances to {:?} {:?}",
+                r.shape(),
+                r.dtype()
+            );
+            typed!(
+                x.dtype(),
+                extrapolate_distance2_typed(&x, &previous, beta, &r, split)
+            )
         }
     }
 }
@@ -223,6 +494,41 @@ mod autodiff {
             let (g, _) = g.into_parts();
             let (s, _) = s.into_parts();
             FloatTensor::<Self>::new(B::descend(x, g, s))
+        }
+
+        fn descend_distance2(
+            x: FloatTensor<Self>,
+            g: FloatTensor<Self>,
+            s: FloatTensor<Self>,
+            r: FloatTensor<Self>,
+            split: usize,
+        ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+            let (x, _) = x.into_parts();
+            let (g, _) = g.into_parts();
+            let (s, _) = s.into_parts();
+            let (r, _) = r.into_parts();
+            let (out, sums) = B::descend_distance2(x, g, s, r, split);
+            (
+                FloatTensor::<Self>::new(out),
+                FloatTensor::<Self>::new(sums),
+            )
+        }
+
+        fn extrapolate_distance2(
+            x: FloatTensor<Self>,
+            previous: FloatTensor<Self>,
+            beta: f64,
+            r: FloatTensor<Self>,
+            split: usize,
+        ) -> (FloatTensor<Self>, FloatTensor<Self>) {
+            let (x, _) = x.into_parts();
+            let (previous, _) = previous.into_parts();
+            let (r, _) = r.into_parts();
+            let (out, sums) = B::extrapolate_distance2(x, previous, beta, r, split);
+            (
+                FloatTensor::<Self>::new(out),
+                FloatTensor::<Self>::new(sums),
+            )
         }
     }
 }

@@ -722,17 +722,31 @@ fn a_batch_item_is_decided_as_inside_the_whole_batch(backend: Backend) {
         )
     };
     let point = grid.identity(n) + grid.tensor(wave(2.1, n * 2 * h * w, 0.4), [n, 2, h, w]);
-    let data = LinearisedData::around(
-        &grid,
-        &bspline,
-        &Sobel::new(&grid),
-        bspline.coefficients(frames(0.9)),
-        frames(1.7),
-        point.clone(),
-        0.05,
-    );
+    let coeffs = bspline.coefficients(frames(0.9));
+    let around = |warped: Option<Tensor<4>>| {
+        LinearisedData::around(
+            &grid,
+            &bspline,
+            &Sobel::new(&grid),
+            coeffs.clone(),
+            frames(1.7),
+            point.clone(),
+            0.05,
+            warped,
+        )
+    };
+    let data = around(None);
     let l = [0.7, 3.0, 0.2];
     let whole = data.prox_each(point.clone(), &l);
+    // A safeguard restart hands over the warp it has just evaluated at the point: the
+    // linearisation must be the one that evaluates it, bit for bit.
+    let given = around(Some(bspline.interpolate(coeffs.clone(), point.clone())))
+        .prox_each(point.clone(), &l);
+    assert_eq!(
+        values(given),
+        values(whole.clone()),
+        "{backend:?}: the linearisation given T[f, point]"
+    );
     let items = [2, 0];
     let picked = Tensor::cat(
         items
@@ -928,9 +942,12 @@ fn a_sweep_stopped_between_blocks_goes_on_exactly(backend: Backend) {
 
 /// The steps' fused updates (`update_op`) are the composed chains they replace, bit for bit:
 /// the extrapolation `x + (x − x_prev)·β` and a feature trial's `x̃ − ∇Q·(1/L)`, one `L` per
-/// item and channel block, on planes that straddle the flex kernel's chunks.
+/// item and channel block, on planes that straddle the flex kernel's chunks; where decision
+/// sums are float64, the same with the distances they fold.
 fn fused_updates_equal_the_composed_chains(backend: Backend) {
-    use deepmorph::solver::update_op::{descend, extrapolate};
+    use deepmorph::solver::update_op::{
+        descend, descend_distance2, extrapolate, extrapolate_distance2,
+    };
     let device = device(backend, Precision::F32, true);
     let grid = Grid::new(96, 90, &device, burn::tensor::DType::F32).unwrap();
     let shape = [2, 3, 96, 90];
@@ -968,6 +985,36 @@ fn fused_updates_equal_the_composed_chains(backend: Backend) {
             values(part(&stepped)),
             composed,
             "{backend:?}: gradient step of item {i}, channels {block:?}"
+        );
+    }
+    // With float64 decision sums, the updates that fold the new frame's distance to a third
+    // one as they write it: the same frame, and the sums `decision_distance2_blocks` gives.
+    if grid.accumulation() == Accumulation::Float64 {
+        let r = wave(6.1);
+        let (fused, sums) = descend_distance2(x.clone(), g, &lipschitz, &blocks, r.clone());
+        assert_eq!(
+            values(fused),
+            values(stepped.clone()),
+            "{backend:?}: gradient step"
+        );
+        assert_eq!(
+            values(sums),
+            values(grid.decision_distance2_blocks(r.clone(), stepped, &blocks)),
+            "{backend:?}: the gradient step's distances"
+        );
+        let whole = [0..3];
+        let (fused, sums) =
+            extrapolate_distance2(x.clone(), previous.clone(), beta, &whole, r.clone());
+        let composed = extrapolate(x, previous, beta);
+        assert_eq!(
+            values(fused),
+            values(composed.clone()),
+            "{backend:?}: extrapolation"
+        );
+        assert_eq!(
+            values(sums),
+            values(grid.decision_distance2_blocks(r, composed, &whole)),
+            "{backend:?}: the extrapolation's distances"
         );
     }
 }

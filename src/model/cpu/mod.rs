@@ -433,14 +433,7 @@ pub(crate) fn combine<T: Copy + Send + Sync>(
 ) -> Vec<T> {
     /// Values per task.
     const CHUNK: usize = 1 << 14;
-    assert_eq!(a.len(), b.len(), "update: lengths differ");
-    let per_segment = a.len() / s.len().max(1);
-    assert_eq!(
-        per_segment * s.len(),
-        a.len(),
-        "update: {} factors",
-        s.len()
-    );
+    let per_segment = segment_length(a, b, s);
     // Written chunk by chunk on the pool without zeroing first (a zeroed frame was a serial
     // memset on the solver's thread).
     let mut out = Vec::<T>::with_capacity(a.len());
@@ -450,21 +443,122 @@ pub(crate) fn combine<T: Copy + Send + Sync>(
         .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
         .enumerate()
         .for_each(|(chunk, (out, (a, b)))| {
-            // The chunk's runs of one segment each, so the inner loop vectorises.
-            let (first, mut from) = (chunk * CHUNK, 0);
-            while from < out.len() {
-                let segment = (first + from) / per_segment;
-                let to = ((segment + 1) * per_segment - first).min(out.len());
-                let factor = s[segment];
-                for ((o, &x), &y) in out[from..to].iter_mut().zip(&a[from..to]).zip(&b[from..to]) {
-                    o.write(f(x, y, factor));
-                }
-                from = to;
-            }
+            combine_span(out, a, b, chunk * CHUNK, per_segment, s, &f);
         });
     // SAFETY: every one of the `a.len()` values was written above.
     unsafe { out.set_len(a.len()) };
     out
+}
+
+/// The values per factor of [`combine`]'s segments.
+#[cfg(any(feature = "flex", test))]
+fn segment_length<T>(a: &[T], b: &[T], s: &[T]) -> usize {
+    assert_eq!(a.len(), b.len(), "update: lengths differ");
+    let per_segment = a.len() / s.len().max(1);
+    assert_eq!(
+        per_segment * s.len(),
+        a.len(),
+        "update: {} factors",
+        s.len()
+    );
+    per_segment
+}
+
+/// [`combine`] of one span of values starting at value `first` of the whole: the span's runs
+/// of one segment each, so the inner loop vectorises.
+#[cfg(any(feature = "flex", test))]
+#[inline(always)]
+fn combine_span<T: Copy>(
+    out: &mut [std::mem::MaybeUninit<T>],
+    a: &[T],
+    b: &[T],
+    first: usize,
+    per_segment: usize,
+    s: &[T],
+    f: &impl Fn(T, T, T) -> T,
+) {
+    let mut from = 0;
+    while from < out.len() {
+        let segment = (first + from) / per_segment;
+        let to = ((segment + 1) * per_segment - first).min(out.len());
+        let factor = s[segment];
+        for ((o, &x), &y) in out[from..to].iter_mut().zip(&a[from..to]).zip(&b[from..to]) {
+            o.write(f(x, y, factor));
+        }
+        from = to;
+    }
+}
+
+/// [`combine`], and `Σ (r_i − out_i)²` over each of the consecutive `regions` (lengths
+/// covering every value: an item's channel block each) summed as the decision sums sum it
+/// ([`crate::model::decision::flex::reduce`] of the region's `r` and `out`: the same chunks
+/// from the region's start, the same lanes, the same bits). Each chunk is folded right after
+/// it is written, while it is in cache: the frame is not read back (a feature trial's
+/// gradient step and its distance to the next frame's warp, one pass instead of two).
+#[cfg(feature = "flex")]
+pub(crate) fn combine_distance2<T: crate::model::decision::flex::Value + Send>(
+    a: &[T],
+    b: &[T],
+    s: &[T],
+    r: &[T],
+    regions: &[usize],
+    f: impl Fn(T, T, T) -> T + Sync,
+) -> (Vec<T>, Vec<f64>) {
+    use crate::model::decision::flex::{CHUNK, Term};
+    let per_segment = segment_length(a, b, s);
+    assert_eq!(r.len(), a.len(), "update: lengths differ");
+    assert_eq!(
+        regions.iter().sum::<usize>(),
+        a.len(),
+        "update: regions {regions:?} do not cover {} values",
+        a.len()
+    );
+    // (region, first value, length) of every task: the region's chunks from its start.
+    let mut tasks = Vec::new();
+    let mut start = 0;
+    for (region, &len) in regions.iter().enumerate() {
+        tasks.extend(
+            (0..len)
+                .step_by(CHUNK)
+                .map(|at| (region, start + at, CHUNK.min(len - at))),
+        );
+        start += len;
+    }
+    let mut out = Vec::<T>::with_capacity(a.len());
+    let mut spare = &mut out.spare_capacity_mut()[..a.len()];
+    let mut spans = Vec::with_capacity(tasks.len());
+    for &(_, _, len) in &tasks {
+        let (span, rest) = spare.split_at_mut(len);
+        spans.push(span);
+        spare = rest;
+    }
+    let partial: Vec<f64> = tasks
+        .par_iter()
+        .zip(spans)
+        .map(|(&(_, first, len), span)| {
+            let at = first..first + len;
+            combine_span(
+                span,
+                &a[at.clone()],
+                &b[at.clone()],
+                first,
+                per_segment,
+                s,
+                &f,
+            );
+            // SAFETY: combine_span wrote every value of the span just now.
+            let written = unsafe { &*(std::ptr::from_mut(span) as *const [T]) };
+            T::fold(&r[at], written, Term::SquaredDifference)
+        })
+        .collect();
+    // SAFETY: the spans cover the `a.len()` values, every one written above.
+    unsafe { out.set_len(a.len()) };
+    // Each region's chunk sums in order, as `reduce` adds them.
+    let mut parts: Vec<Vec<f64>> = vec![Vec::new(); regions.len()];
+    for (&(region, _, _), p) in tasks.iter().zip(partial) {
+        parts[region].push(p);
+    }
+    (out, parts.iter().map(|p| p.iter().sum()).collect())
 }
 
 /// A raw pointer that tasks writing disjoint indices of one buffer may share.
@@ -584,6 +678,33 @@ mod tests {
         assert_eq!(out.len(), a.len());
         for (i, &v) in out.iter().enumerate() {
             assert_eq!(v, a[i] - b[i] * s[i / per_item], "value {i}");
+        }
+    }
+
+    /// The fused update's frame is [`combine`]'s and its sums the decision sums of each
+    /// region, bit for bit: regions shorter than a chunk, longer and not a multiple of it,
+    /// segments that straddle regions.
+    #[cfg(feature = "flex")]
+    #[test]
+    fn a_fused_update_folds_each_region_as_the_decision_sums_do() {
+        use crate::model::decision::flex::{Term, reduce};
+        let regions = [3 * 1000, 20000, 40000, 257];
+        let len: usize = regions.iter().sum();
+        let a: Vec<f32> = (0..len).map(|i| (i % 13) as f32 * 0.5 - 1.0).collect();
+        let b: Vec<f32> = (0..len).map(|i| (i % 7) as f32 * 0.25).collect();
+        let r: Vec<f32> = (0..len).map(|i| (i % 11) as f32 * 0.3 - 0.7).collect();
+        // 61 segments of 1037 values: not aligned with the regions or the chunks.
+        let s: Vec<f32> = (0..61).map(|m| 0.1 + m as f32 * 0.05).collect();
+        let f = |x: f32, y: f32, s: f32| x - y * s;
+        let (out, sums) = combine_distance2(&a, &b, &s, &r, &regions, f);
+        let want = combine(&a, &b, &s, f);
+        assert_eq!(out, want);
+        let mut start = 0;
+        for (j, &len) in regions.iter().enumerate() {
+            let at = start..start + len;
+            let single = reduce(&r[at.clone()], &want[at], Term::SquaredDifference);
+            assert_eq!(sums[j].to_bits(), single.to_bits(), "region {j}");
+            start += len;
         }
     }
 
