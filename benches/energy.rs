@@ -226,5 +226,79 @@ fn adjoint_benches(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(energy, benches, prefilter_benches, adjoint_benches);
+/// A feature trial's frame passes besides its warp (SPEC §6 step 3), deep model, float64
+/// decision sums on flex: the gradient step `x̃ − ∇Q/L` of both channel blocks and the three
+/// decision folds of its test, `‖T[f_{k+1}, φ_{k+1}] − x_new‖²`, `‖T[x_new, φ_k] − f_{k−1}‖²`
+/// and `‖T[x_new, φ_k] − T[x̃, φ_k]‖²` per block, done `separately` (a pass per fold) and
+/// `fused` as the solver runs them (the first fold while the step writes the frame, the other
+/// two in one pass over the trial's warp).
+fn trial_fold_benches(c: &mut Criterion) {
+    use deepmorph::solver::update_op::{descend, descend_distance2};
+    let Ok(device) = Backend::Flex.device_for(Precision::F32) else {
+        return;
+    };
+    let mut group = c.benchmark_group("trial-folds");
+    group.sample_size(10).warm_up_time(Duration::from_secs(1));
+    for (channels, n, frames) in [(67, 256, FRAMES), (67, 256, 1), (131, 128, FRAMES)] {
+        let grid = Grid::new(n, n, &device, Precision::F32.dtype()).unwrap();
+        let blocks = [0..3, 3..channels];
+        let stack = |seed: f64| {
+            Tensor::cat(
+                (0..frames)
+                    .map(|i| image(&grid, channels, seed + i as f64))
+                    .collect(),
+                0,
+            )
+        };
+        let (x, g, next, warped, before, tilde) = (
+            stack(0.0),
+            stack(1.0),
+            stack(2.0),
+            stack(3.0),
+            stack(4.0),
+            stack(5.0),
+        );
+        let lipschitz: Vec<f64> = (0..frames * 2).map(|e| 2.0 + e as f64).collect();
+        for variant in ["separate", "fused"] {
+            let id = BenchmarkId::new(format!("{variant}/C{channels}x{frames}"), n);
+            group.bench_with_input(id, &n, |b, _| {
+                b.iter(|| {
+                    let sums = if variant == "fused" {
+                        let (_, to_next) = descend_distance2(
+                            x.clone(),
+                            g.clone(),
+                            &lipschitz,
+                            &blocks,
+                            next.clone(),
+                        );
+                        let [to_prev, moved] = grid.decision_distance2_blocks_pair(
+                            warped.clone(),
+                            before.clone(),
+                            tilde.clone(),
+                            &blocks,
+                        );
+                        [to_next, to_prev, moved]
+                    } else {
+                        let candidate = descend(x.clone(), g.clone(), &lipschitz, &blocks);
+                        [
+                            grid.decision_distance2_blocks(next.clone(), candidate, &blocks),
+                            grid.decision_distance2_blocks(warped.clone(), before.clone(), &blocks),
+                            grid.decision_distance2_blocks(warped.clone(), tilde.clone(), &blocks),
+                        ]
+                    };
+                    sums.map(|t| t.into_data())
+                })
+            });
+        }
+    }
+    group.finish();
+}
+
+criterion_group!(
+    energy,
+    benches,
+    prefilter_benches,
+    adjoint_benches,
+    trial_fold_benches
+);
 criterion_main!(energy);
