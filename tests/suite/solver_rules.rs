@@ -1002,9 +1002,10 @@ fn fused_updates_equal_the_composed_chains(backend: Backend) {
             values(grid.decision_distance2_blocks(r.clone(), stepped, &blocks)),
             "{backend:?}: the gradient step's distances"
         );
-        let whole = [0..3];
+        let every_channel = 0..3;
+        let whole = std::slice::from_ref(&every_channel);
         let (fused, sums) =
-            extrapolate_distance2(x.clone(), previous.clone(), beta, &whole, r.clone());
+            extrapolate_distance2(x.clone(), previous.clone(), beta, whole, r.clone());
         let composed = extrapolate(x, previous, beta);
         assert_eq!(
             values(fused),
@@ -1013,7 +1014,7 @@ fn fused_updates_equal_the_composed_chains(backend: Backend) {
         );
         assert_eq!(
             values(sums),
-            values(grid.decision_distance2_blocks(r, composed, &whole)),
+            values(grid.decision_distance2_blocks(r, composed, whole)),
             "{backend:?}: the extrapolation's distances"
         );
     }
