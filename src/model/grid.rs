@@ -197,20 +197,9 @@ impl Grid {
             ];
         }
         let n = a.dims()[0];
-        let pairs = Tensor::cat(
-            (0..n)
-                .flat_map(|i| blocks.iter().map(move |block| (i, block)))
-                .map(|(i, block)| {
-                    let part = |t: &Tensor<4>| {
-                        t.clone()
-                            .narrow(0, i, 1)
-                            .narrow(1, block.start, block.len())
-                    };
-                    decision::distance2_pair(part(&a), part(&b), part(&c))
-                })
-                .collect(),
-            0,
-        )
+        let pairs = per_item_block(n, blocks, |part| {
+            decision::distance2_pair(part(&a), part(&b), part(&c))
+        })
         .reshape([n * blocks.len(), 2]);
         [0, 1].map(|j| pairs.clone().narrow(1, j, 1).reshape([n * blocks.len()]))
     }
@@ -245,20 +234,7 @@ impl Grid {
         }
         let [n, c, h, w] = a.dims();
         match self.accumulation() {
-            Accumulation::Float64 => Tensor::cat(
-                (0..n)
-                    .flat_map(|i| blocks.iter().map(move |block| (i, block)))
-                    .map(|(i, block)| {
-                        let part = |t: &Tensor<4>| {
-                            t.clone()
-                                .narrow(0, i, 1)
-                                .narrow(1, block.start, block.len())
-                        };
-                        whole(part(&a), part(&b))
-                    })
-                    .collect(),
-                0,
-            ),
+            Accumulation::Float64 => per_item_block(n, blocks, |part| whole(part(&a), part(&b))),
             Accumulation::Float32 => {
                 let t = summand(a.detach(), b.detach()).reshape([n, c, h * w]);
                 let sums = blocks
@@ -480,4 +456,27 @@ pub fn host_values<const D: usize>(t: Tensor<D>) -> Result<Vec<f64>> {
         });
     }
     Ok(values)
+}
+
+/// `sum` of each item's channel block, item-major, concatenated: `sum` reads its tensors
+/// through `part`, which narrows one to the item and block (a contiguous block of one item,
+/// read in place by the flex kernels).
+fn per_item_block(
+    n: usize,
+    blocks: &[Range<usize>],
+    sum: impl Fn(&dyn Fn(&Tensor<4>) -> Tensor<4>) -> Tensor<1>,
+) -> Tensor<1> {
+    Tensor::cat(
+        (0..n)
+            .flat_map(|i| blocks.iter().map(move |block| (i, block)))
+            .map(|(i, block)| {
+                sum(&|t: &Tensor<4>| {
+                    t.clone()
+                        .narrow(0, i, 1)
+                        .narrow(1, block.start, block.len())
+                })
+            })
+            .collect(),
+        0,
+    )
 }

@@ -507,11 +507,7 @@ mod autodiff {
             let (g, _) = g.into_parts();
             let (s, _) = s.into_parts();
             let (r, _) = r.into_parts();
-            let (out, sums) = B::descend_distance2(x, g, s, r, split);
-            (
-                FloatTensor::<Self>::new(out),
-                FloatTensor::<Self>::new(sums),
-            )
+            constants::<B, C>(B::descend_distance2(x, g, s, r, split))
         }
 
         fn extrapolate_distance2(
@@ -524,11 +520,17 @@ mod autodiff {
             let (x, _) = x.into_parts();
             let (previous, _) = previous.into_parts();
             let (r, _) = r.into_parts();
-            let (out, sums) = B::extrapolate_distance2(x, previous, beta, r, split);
-            (
-                FloatTensor::<Self>::new(out),
-                FloatTensor::<Self>::new(sums),
-            )
+            constants::<B, C>(B::extrapolate_distance2(x, previous, beta, r, split))
         }
+    }
+
+    /// A fused update's frame and sums as untracked tensors.
+    fn constants<B: UpdateOps, C: CheckpointStrategy>(
+        (out, sums): (FloatTensor<B>, FloatTensor<B>),
+    ) -> (FloatTensor<Autodiff<B, C>>, FloatTensor<Autodiff<B, C>>) {
+        (
+            FloatTensor::<Autodiff<B, C>>::new(out),
+            FloatTensor::<Autodiff<B, C>>::new(sums),
+        )
     }
 }
