@@ -524,10 +524,13 @@ mod autodiff {
         }
     }
 
+    /// A fused update's frame and its sums.
+    type Fused<B> = (FloatTensor<B>, FloatTensor<B>);
+
     /// A fused update's frame and sums as untracked tensors.
     fn constants<B: UpdateOps, C: CheckpointStrategy>(
-        (out, sums): (FloatTensor<B>, FloatTensor<B>),
-    ) -> (FloatTensor<Autodiff<B, C>>, FloatTensor<Autodiff<B, C>>) {
+        (out, sums): Fused<B>,
+    ) -> Fused<Autodiff<B, C>> {
         (
             FloatTensor::<Autodiff<B, C>>::new(out),
             FloatTensor::<Autodiff<B, C>>::new(sums),
