@@ -265,6 +265,7 @@ fn trial_fold_benches(c: &mut Criterion) {
                 b.iter(|| {
                     let sums = if variant == "fused" {
                         let (_, to_next) = descend_distance2(
+                            &grid,
                             x.clone(),
                             g.clone(),
                             &lipschitz,

@@ -297,28 +297,22 @@ pub(crate) mod flex {
         ]
     }
 
-    fn dot(a: &HostView, b: &HostView) -> f64 {
-        match a.dtype() {
-            DType::F32 => reduce(a.values::<f32>(), b.values::<f32>(), Term::Product),
-            DType::F64 => reduce(a.values::<f64>(), b.values::<f64>(), Term::Product),
-            other => panic!("decision sums read float32 or float64, not {other:?}"),
-        }
-    }
-
-    fn distance2(a: &HostView, b: &HostView) -> f64 {
-        match a.dtype() {
-            DType::F32 => reduce(
-                a.values::<f32>(),
-                b.values::<f32>(),
-                Term::SquaredDifference,
-            ),
-            DType::F64 => reduce(
-                a.values::<f64>(),
-                b.values::<f64>(),
-                Term::SquaredDifference,
-            ),
-            other => panic!("decision sums read float32 or float64, not {other:?}"),
-        }
+    /// `$body` with `$T` the host type of `$dtype`'s values: decision sums read float32 or
+    /// float64.
+    macro_rules! by_dtype {
+        ($dtype:expr, |$T:ident| $body:expr) => {
+            match $dtype {
+                DType::F32 => {
+                    type $T = f32;
+                    $body
+                }
+                DType::F64 => {
+                    type $T = f64;
+                    $body
+                }
+                other => panic!("decision sums read float32 or float64, not {other:?}"),
+            }
+        };
     }
 
     fn scalar(v: f64) -> FlexTensor {
@@ -328,24 +322,31 @@ pub(crate) mod flex {
     impl DecisionOps for Flex {
         fn decision_sum(a: FlexTensor) -> FlexTensor {
             let a = HostView::new(a);
-            let v = match a.dtype() {
-                DType::F32 => reduce(a.values::<f32>(), a.values::<f32>(), Term::First),
-                DType::F64 => reduce(a.values::<f64>(), a.values::<f64>(), Term::First),
-                other => panic!("decision sums read float32 or float64, not {other:?}"),
-            };
-            scalar(v)
+            scalar(by_dtype!(a.dtype(), |T| reduce(
+                a.values::<T>(),
+                a.values::<T>(),
+                Term::First
+            )))
         }
 
         fn decision_dot(a: FlexTensor, b: FlexTensor) -> FlexTensor {
             let (a, b) = (HostView::new(a), HostView::new(b));
             assert_eq!(a.dtype(), b.dtype(), "decision dot: dtypes differ");
-            scalar(dot(&a, &b))
+            scalar(by_dtype!(a.dtype(), |T| reduce(
+                a.values::<T>(),
+                b.values::<T>(),
+                Term::Product
+            )))
         }
 
         fn decision_distance2(a: FlexTensor, b: FlexTensor) -> FlexTensor {
             let (a, b) = (HostView::new(a), HostView::new(b));
             assert_eq!(a.dtype(), b.dtype(), "decision distance: dtypes differ");
-            scalar(distance2(&a, &b))
+            scalar(by_dtype!(a.dtype(), |T| reduce(
+                a.values::<T>(),
+                b.values::<T>(),
+                Term::SquaredDifference
+            )))
         }
 
         fn decision_distance2_pair(a: FlexTensor, b: FlexTensor, c: FlexTensor) -> FlexTensor {
@@ -354,21 +355,12 @@ pub(crate) mod flex {
                 a.dtype() == b.dtype() && a.dtype() == c.dtype(),
                 "decision distances: dtypes differ"
             );
-            let pair = match a.dtype() {
-                DType::F32 => reduce_pair(
-                    a.values::<f32>(),
-                    b.values::<f32>(),
-                    c.values::<f32>(),
-                    Term::SquaredDifference,
-                ),
-                DType::F64 => reduce_pair(
-                    a.values::<f64>(),
-                    b.values::<f64>(),
-                    c.values::<f64>(),
-                    Term::SquaredDifference,
-                ),
-                other => panic!("decision sums read float32 or float64, not {other:?}"),
-            };
+            let pair = by_dtype!(a.dtype(), |T| reduce_pair(
+                a.values::<T>(),
+                b.values::<T>(),
+                c.values::<T>(),
+                Term::SquaredDifference
+            ));
             FlexTensor::from_data(TensorData::new(pair.to_vec(), [2]))
         }
     }

@@ -23,13 +23,10 @@ use crate::error::{Error, Result};
 use crate::model::deformation::{admissible_each, min_det_each};
 use crate::model::energy::data::data_term_given;
 use crate::model::energy::regularizer::{mean_density, weighted_density};
-use crate::model::grid::Accumulation;
 use crate::solver::backtracking::{Lockstep, Search, SearchRun, Trial};
 use crate::solver::ipalm::{DeformationStep, FeatureStep, Ipalm, LevelState, read_groups};
 use crate::solver::prox::{LinearisedData, pick};
-use crate::solver::update_op::{
-    descend, descend_distance2, extrapolate, extrapolate_distance2, fuses_distances,
-};
+use crate::solver::update_op::{descend_distance2, extrapolate, extrapolate_distance2};
 
 /// Item `i` of a stacked tensor, `[1, …]` (the tensor itself if it holds one item).
 fn item<const D: usize>(t: &Tensor<D>, i: usize) -> Tensor<D> {
@@ -737,10 +734,6 @@ impl Ipalm {
         let delta = self.energy.params().delta;
         let steps = state.steps() as f64;
         let scale = steps / (delta * 2.0 * c_tot as f64 * grid.pixels() as f64);
-        // Where the decision sums are float64, the gradient steps (the extrapolation and
-        // each trial's) fold the new frame's distance to T[f_{k+1}, φ_{k+1}] as they write
-        // it: the same sums, one frame read fewer each.
-        let fused = grid.accumulation() == Accumulation::Float64 && fuses_distances(&blocks);
         let f_k = take(&state.f, ks, 0);
         // φ_k (stored at k − 1) is already this sweep's, φ_{k+1} (at k) still the previous
         // one. Both stay fixed for the whole step: φ_k's stencil serves every trial, and
@@ -755,20 +748,19 @@ impl Ipalm {
             FrameProducts { coeffs, warped }
         });
         let before = take(&state.f, ks, -1);
+        // The extrapolation (and below each trial's gradient step) gives the new frame's
+        // distances to T[f_{k+1}, φ_{k+1}] with it: on flex one pass, folded as it is written.
         let (f_tilde, fixed) = if self.config.beta > 0.0 {
             let previous = take(&state.f_prev, ks, 0);
-            if fused {
-                let (f_tilde, fixed) = extrapolate_distance2(
-                    f_k.clone(),
-                    previous,
-                    self.config.beta,
-                    &blocks,
-                    next.warped.clone(),
-                );
-                (f_tilde, Some(fixed))
-            } else {
-                (extrapolate(f_k.clone(), previous, self.config.beta), None)
-            }
+            let (f_tilde, fixed) = extrapolate_distance2(
+                grid,
+                f_k.clone(),
+                previous,
+                self.config.beta,
+                &blocks,
+                next.warped.clone(),
+            );
+            (f_tilde, Some(fixed))
         } else {
             (f_k.clone(), None)
         };
@@ -836,23 +828,14 @@ impl Ipalm {
                 .flat_map(|&i| (i * nb..(i + 1) * nb).map(|e| trial[e].or(accepted[e])))
                 .map(|l| l.unwrap_or(f64::INFINITY))
                 .collect();
-            let (candidates, to_next) = if fused {
-                descend_distance2(
-                    pick(&x_tilde, &items),
-                    pick(&grad, &items),
-                    &l,
-                    &blocks,
-                    pick(&next.warped, &items),
-                )
-            } else {
-                let candidates = descend(pick(&x_tilde, &items), pick(&grad, &items), &l, &blocks);
-                let to_next = grid.decision_distance2_blocks(
-                    pick(&next.warped, &items),
-                    candidates.clone(),
-                    &blocks,
-                );
-                (candidates, to_next)
-            };
+            let (candidates, to_next) = descend_distance2(
+                grid,
+                pick(&x_tilde, &items),
+                pick(&grad, &items),
+                &l,
+                &blocks,
+                pick(&next.warped, &items),
+            );
             let coeffs = bspline.coefficients(candidates.clone());
             let trial_warped = if items.len() == n {
                 sampler.sample(coeffs.clone())

@@ -25,6 +25,8 @@ use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, TensorMetadata, backend_extension};
 use burn::tensor::{Scalar, Shape, Slice, Tensor, TensorData};
 
+use crate::model::grid::{Accumulation, Grid};
+
 /// The updates' primitives.
 #[backend_extension(
     Flex: cfg(feature = "flex"),
@@ -212,19 +214,19 @@ fn step_factors(
     Tensor::<1>::from_data(TensorData::new(inverse, [n * c]), (&x.device(), x.dtype()))
 }
 
-/// [`descend`] and the float64 `Σ (r − x_new)²` of each item and block, `[N · B]`
-/// item-major: the values [`descend`] then
-/// [`crate::model::grid::Grid::decision_distance2_blocks`]`(r, x_new, blocks)` give, bit for
-/// bit, but on flex in one pass (each chunk of the new frame folded while it is in cache).
-/// For grids whose decision sums are float64; `blocks` are `0..s` and `s..C`, or `0..C`.
+/// [`descend`] and `grid.`[`decision_distance2_blocks`](Grid::decision_distance2_blocks)`(r,
+/// x_new, blocks)`, `[N · B]` item-major. Where the grid's decision sums are float64 and the
+/// blocks are `0..s`, `s..C` (or `0..C`), one pass (on flex each chunk of the new frame is
+/// folded while it is in cache), the same bits; otherwise the two calls.
 ///
 /// # Shapes
 /// - `x`, `g`, `r`, the new frame: `[N, C, H, W]`; `lipschitz` as in [`descend`]
 ///
 /// # Panics
 ///
-/// As [`descend`]; if `r`'s shape differs, or the blocks are not of that form.
+/// As [`descend`]; if `r`'s shape differs.
 pub fn descend_distance2(
+    grid: &Grid,
     x: Tensor<4>,
     g: Tensor<4>,
     lipschitz: &[f64],
@@ -232,27 +234,34 @@ pub fn descend_distance2(
     r: Tensor<4>,
 ) -> (Tensor<4>, Tensor<1>) {
     assert_eq!(x.dims(), r.dims(), "gradient step: shapes differ");
+    let Some(split) = fused_split(grid, blocks) else {
+        let stepped = descend(x, g, lipschitz, blocks);
+        let sums = grid.decision_distance2_blocks(r, stepped.clone(), blocks);
+        return (stepped, sums);
+    };
     let s = step_factors(&x, g.dims(), lipschitz, blocks);
     let (out, sums) = Dispatch::descend_distance2(
         x.detach().into_dispatch(),
         g.detach().into_dispatch(),
         s.into_dispatch(),
         r.detach().into_dispatch(),
-        split_of(blocks),
+        split,
     );
     (Tensor::from_dispatch(out), Tensor::from_dispatch(sums))
 }
 
-/// [`extrapolate`] and the sums of [`descend_distance2`], bit for bit [`extrapolate`] then
-/// [`crate::model::grid::Grid::decision_distance2_blocks`]`(r, x̃, blocks)`.
+/// [`extrapolate`] and the sums of [`descend_distance2`]: bit for bit [`extrapolate`] then
+/// `grid.`[`decision_distance2_blocks`](Grid::decision_distance2_blocks)`(r, x̃, blocks)`, in
+/// one pass where [`descend_distance2`] is one.
 ///
 /// # Shapes
 /// - `x`, `previous`, `r`, `x̃`: `[N, C, H, W]`
 ///
 /// # Panics
 ///
-/// If the shapes differ, or the blocks are not those of [`descend_distance2`].
+/// If the shapes differ, or the blocks do not end at `C`.
 pub fn extrapolate_distance2(
+    grid: &Grid,
     x: Tensor<4>,
     previous: Tensor<4>,
     beta: f64,
@@ -268,29 +277,31 @@ pub fn extrapolate_distance2(
         Some(x.dims()[1]),
         "extrapolation: blocks {blocks:?}"
     );
+    let Some(split) = fused_split(grid, blocks) else {
+        let extrapolated = extrapolate(x, previous, beta);
+        let sums = grid.decision_distance2_blocks(r, extrapolated.clone(), blocks);
+        return (extrapolated, sums);
+    };
     let (out, sums) = Dispatch::extrapolate_distance2(
         x.detach().into_dispatch(),
         previous.detach().into_dispatch(),
         beta,
         r.detach().into_dispatch(),
-        split_of(blocks),
+        split,
     );
     (Tensor::from_dispatch(out), Tensor::from_dispatch(sums))
 }
 
-/// Whether [`descend_distance2`] and [`extrapolate_distance2`] take these blocks: one block
-/// of every channel, or two.
-pub fn fuses_distances(blocks: &[Range<usize>]) -> bool {
-    matches!(blocks.len(), 1 | 2) && blocks[0].start == 0
-}
-
-/// The channel where the second block starts (`C` for one block).
-fn split_of(blocks: &[Range<usize>]) -> usize {
-    assert!(
-        fuses_distances(blocks) && blocks.windows(2).all(|w| w[0].end == w[1].start),
-        "fused distances: blocks {blocks:?} are not 0..s, s..C"
-    );
-    blocks[0].end
+/// The channel where the fused sums' second block starts (`C` for one block), where the
+/// fused updates apply: float64 decision sums (the fused kernels fold in float64, as
+/// [`Grid::decision_distance2_blocks`] does only then) and blocks `0..s, s..C` or `0..C`.
+fn fused_split(grid: &Grid, blocks: &[Range<usize>]) -> Option<usize> {
+    let contiguous = blocks.windows(2).all(|w| w[0].end == w[1].start);
+    (grid.accumulation() == Accumulation::Float64
+        && matches!(blocks.len(), 1 | 2)
+        && blocks[0].start == 0
+        && contiguous)
+        .then(|| blocks[0].end)
 }
 
 #[cfg(feature = "flex")]

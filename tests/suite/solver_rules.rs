@@ -991,7 +991,8 @@ fn fused_updates_equal_the_composed_chains(backend: Backend) {
     // one as they write it: the same frame, and the sums `decision_distance2_blocks` gives.
     if grid.accumulation() == Accumulation::Float64 {
         let r = wave(6.1);
-        let (fused, sums) = descend_distance2(x.clone(), g, &lipschitz, &blocks, r.clone());
+        let (fused, sums) =
+            descend_distance2(&grid, x.clone(), g.clone(), &lipschitz, &blocks, r.clone());
         assert_eq!(
             values(fused),
             values(stepped.clone()),
@@ -1002,10 +1003,26 @@ fn fused_updates_equal_the_composed_chains(backend: Backend) {
             values(grid.decision_distance2_blocks(r.clone(), stepped, &blocks)),
             "{backend:?}: the gradient step's distances"
         );
+        // Blocks the fused kernels do not take: the two passes.
+        let thirds = [0..1, 1..2, 2..3];
+        let six = [3.7, 0.061, 1.5, 12.5, 0.25, f64::INFINITY];
+        let (stepped, sums) =
+            descend_distance2(&grid, x.clone(), g.clone(), &six, &thirds, r.clone());
+        let composed = descend(x.clone(), g.clone(), &six, &thirds);
+        assert_eq!(
+            values(sums),
+            values(grid.decision_distance2_blocks(r.clone(), composed.clone(), &thirds)),
+            "{backend:?}: three blocks' distances"
+        );
+        assert_eq!(
+            values(stepped),
+            values(composed),
+            "{backend:?}: three blocks"
+        );
         let every_channel = 0..3;
         let whole = std::slice::from_ref(&every_channel);
         let (fused, sums) =
-            extrapolate_distance2(x.clone(), previous.clone(), beta, whole, r.clone());
+            extrapolate_distance2(&grid, x.clone(), previous.clone(), beta, whole, r.clone());
         let composed = extrapolate(x, previous, beta);
         assert_eq!(
             values(fused),
