@@ -591,6 +591,20 @@ impl<T> Shared<T> {
 /// both cores (or sixteen) get an even share at 64².
 pub(crate) const PIXELS_PER_TASK: usize = 1024;
 
+/// Values (pixels × channels) per task of the kernels that run over pixels with the channels
+/// inner: what a task of [`PIXELS_PER_TASK`] pixels holds at the finest deep level's 67
+/// channels.
+const VALUES_PER_TASK: usize = PIXELS_PER_TASK * 67;
+
+/// Pixels per task of a kernel over pixels with `c` channels inner: about
+/// [`VALUES_PER_TASK`] values, at most [`PIXELS_PER_TASK`] pixels, a multiple of 64 (whole
+/// tiles and transpose blocks). With [`PIXELS_PER_TASK`] pixels whatever the channels, a
+/// 32² image of 515 channels (a deep morph's second level: 8 M multiply-adds an evaluation)
+/// was one task, and that level's evaluations and transposes ran on one core.
+pub(crate) fn pixels_per_task(c: usize) -> usize {
+    (VALUES_PER_TASK / c.max(1)).clamp(64, PIXELS_PER_TASK) / 64 * 64
+}
+
 /// One image's `C` planes of `plane` values, channels-last, into `out` (same length):
 /// `out[p·C + c] = planar[c·plane + p]`. Also the transpose of a `c × plane` matrix
 /// (the separable operators' transposes of whole planes).
@@ -602,10 +616,11 @@ pub(crate) fn channels_last_into<T: Real>(planar: &[T], c: usize, plane: usize, 
         out.len()
     );
     let target = Shared(out.as_mut_ptr());
-    (0..plane.div_ceil(PIXELS_PER_TASK))
+    let per_task = pixels_per_task(c);
+    (0..plane.div_ceil(per_task))
         .into_par_iter()
         .for_each(|chunk| {
-            let pixels = chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(plane);
+            let pixels = chunk * per_task..((chunk + 1) * per_task).min(plane);
             // SAFETY: the chunk's pixels' rows of `out` are this task's alone.
             unsafe { transpose_pixels_simd(planar, c, plane, target, pixels) };
         });

@@ -55,15 +55,16 @@ pub(super) fn sample_channels_last<T: SplineReal>(
     d: Dims,
 ) {
     let (points, c) = (d.points(), d.c);
-    let tasks = points.div_ceil(PIXELS_PER_TASK);
+    let per_task = pixels_per_task(c);
+    let tasks = points.div_ceil(per_task);
     let stream = std::mem::size_of_val(out) >= STREAM_FROM_BYTES;
     let out = Shared(out.as_mut_ptr().cast::<T>());
     for b in 0..d.n {
         let (table, stride) = image_table(coeffs, layout, d, b);
         (0..tasks).into_par_iter().for_each(|chunk| {
             let mut tile = vec![T::default(); c * TILE];
-            let end = ((chunk + 1) * PIXELS_PER_TASK).min(points);
-            for first in (chunk * PIXELS_PER_TASK..end).step_by(TILE) {
+            let end = ((chunk + 1) * per_task).min(points);
+            for first in (chunk * per_task..end).step_by(TILE) {
                 let count = TILE.min(end - first);
                 evaluate_tile_simd(&table, stride, phi, d, b, first..first + count, &mut tile);
                 // SAFETY: points first..first + count of image b are this task's alone, in
@@ -232,13 +233,14 @@ pub(super) fn position_grad_channels_last<T: SplineReal>(
     d: Dims,
 ) {
     let (points, c) = (d.points(), d.c);
-    let tasks = points.div_ceil(PIXELS_PER_TASK);
+    let per_task = pixels_per_task(c);
+    let tasks = points.div_ceil(per_task);
     let out = Shared(out.as_mut_ptr());
     for b in 0..d.n {
         let (table, stride) = image_table(coeffs, layout, d, b);
         let g = channels_last(&grad[b * c * points..(b + 1) * c * points], c, points);
         (0..tasks).into_par_iter().for_each(|chunk| {
-            let range = chunk * PIXELS_PER_TASK..((chunk + 1) * PIXELS_PER_TASK).min(points);
+            let range = chunk * per_task..((chunk + 1) * per_task).min(points);
             position_grad_tile_simd(&table, stride, phi, &g, out, d, b, range);
         });
     }

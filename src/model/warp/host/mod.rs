@@ -30,7 +30,8 @@ use std::mem::MaybeUninit;
 use rayon::prelude::*;
 
 pub(crate) use crate::model::cpu::{
-    PIXELS_PER_TASK, Real, Shared, channels_last_into, has_avx2, simd_dispatch, transpose_pixels,
+    PIXELS_PER_TASK, Real, Shared, channels_last_into, has_avx2, pixels_per_task, simd_dispatch,
+    transpose_pixels,
 };
 
 pub mod adjoint;

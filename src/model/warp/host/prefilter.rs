@@ -469,9 +469,10 @@ pub fn prefilter_channels_last_uninit<T: SplineReal>(
             });
         return;
     }
+    // Rows of `C` values a pixel: as many rows a task as the pixel kernels' tasks hold.
     out.par_chunks_mut(line)
         .enumerate()
-        .with_min_len((PIXELS_PER_TASK / width).max(1))
+        .with_min_len((pixels_per_task(c) / width).max(1))
         .for_each(|(row, values)| {
             let (b, i) = (row / height, row % height);
             let values = gather_row(&source[b * c * plane..(b + 1) * c * plane], values, i, c);
