@@ -12,7 +12,9 @@
 //!   kernel) of the 15 frames of a `K = 15` sweep at once (the batched schedule), or of one
 //!   frame (the sequential schedule's steps): `channels-last` is `P f` of the deep model's
 //!   67 channels as the warp reads them, `adjoint` `Pᵀ g` of 67 planar channels (the warp's
-//!   backward), `planar` `P f` of RGB.
+//!   backward), `planar` `P f` of RGB;
+//! - `slope-moments/C{c}x{frames}/{n}`: the deformation step's linearisation moments (the
+//!   flex kernel) at each level of a default deep morph.
 //!
 //! `C = 3` is the RGB model, `C = 67` the deep model's finest level (relu1_2 + η RGB). The
 //! deformation is a smooth admissible one with displacements of a few pixels, so the gathers
@@ -226,6 +228,42 @@ fn adjoint_benches(c: &mut Criterion) {
     group.finish();
 }
 
+/// The deformation step's linearisation moments (`slopes::host_moments`, the flex kernel) of
+/// one frame at each level of a default deep morph (`C` channels at `n²`, `N` frames: 15 in
+/// the batched schedule, 1 in a restart's or the sequential schedule's step).
+fn slope_moment_benches(c: &mut Criterion) {
+    use deepmorph::model::slopes::host_moments;
+    let mut group = c.benchmark_group("slope-moments");
+    group.sample_size(20).warm_up_time(Duration::from_secs(1));
+    for (channels, n, frames) in [
+        (67, 256, 1),
+        (131, 128, 1),
+        (259, 64, 1),
+        (515, 32, 1),
+        (515, 32, FRAMES),
+        (515, 16, FRAMES),
+    ] {
+        let len = frames * channels * n * n;
+        let wave = |seed: f64| -> Vec<f32> {
+            (0..len)
+                .map(|i| ((i as f64 * 0.618 + seed).fract() - 0.5) as f32)
+                .collect()
+        };
+        let (warped, prev) = (wave(0.1), wave(0.4));
+        let phi: Vec<f32> = (0..frames * 2 * n * n)
+            .map(|i| ((i as f64 * 0.377).sin() * 2.0) as f32)
+            .collect();
+        let mut out = vec![0.0f32; frames * 5 * n * n];
+        let id = BenchmarkId::new(format!("C{channels}x{frames}"), n);
+        group.bench_with_input(id, &n, |b, _| {
+            b.iter(|| {
+                host_moments(&warped, &prev, &phi, [frames, channels, n, n], &mut out);
+            })
+        });
+    }
+    group.finish();
+}
+
 /// A feature trial's frame passes besides its warp (SPEC §6 step 3), deep model, float64
 /// decision sums on flex: the gradient step `x̃ − ∇Q/L` of both channel blocks and the three
 /// decision folds of its test, `‖T[f_{k+1}, φ_{k+1}] − x_new‖²`, `‖T[x_new, φ_k] − f_{k−1}‖²`
@@ -300,6 +338,7 @@ criterion_group!(
     benches,
     prefilter_benches,
     adjoint_benches,
+    slope_moment_benches,
     trial_fold_benches
 );
 criterion_main!(energy);
