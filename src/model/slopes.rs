@@ -107,17 +107,17 @@ fn mirror(i: isize, len: usize) -> usize {
 
 /// Adds one channel's `Λ Λᵀ` and `Λ q` at the rows `rows` into `acc` (`[rows, 5, W]`), from
 /// the channel's planes `t` (`T`) and `f` (`f_{k−1}`), `[H, W]`, and `φ̃`'s two planes at
-/// those rows, `p0` and `p1` (`[rows, W]` each: separate arguments, so that the compiler
-/// knows they alias no output, which a pair in an array hid from it and left the column
-/// loop scalar). `scratch` holds `(rows + 2)·W + 2·(W + 2)` values.
+/// those rows, `p0` and `p1` (`[rows, W]` each). `scratch` holds `(rows + 2)·W + 2·(W + 2)`
+/// values.
 ///
 /// Each line of `s = T + f_{k−1}` the rows need (theirs and one either side, mirrored) is
-/// summed once; each row's two passes along it (the central difference and the smoothing)
-/// are written with a mirrored value at either end, so the columns run in one loop over the
-/// whole row (the two edge columns apart, a 32-column row left 8 of its 32 columns to scalar
-/// code: at the 32² level of a deep morph, 515 channels, the moments were a fifth of the
-/// level's time). Every value takes the same operations in the same order as SPEC §6's
-/// formula at the edges and inside.
+/// summed once (per row, three lines were summed again each time); each row's two passes
+/// along it (the central difference and the smoothing) are written with a mirrored value at
+/// either end, so that the columns run over the whole row in `add_row`'s vector blocks (with
+/// the two edge columns apart, a 32-column row left 8 of its 32 columns to scalar code, a
+/// 16-column row all 16: at the 32² level of a deep morph, 515 channels, the moments were a
+/// fifth of the level's time). Every value takes the same operations in the same order as
+/// SPEC §6's formula at the edges and inside.
 #[inline(always)]
 fn moments_rows<T: Real>(
     t: &[T],
