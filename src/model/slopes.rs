@@ -114,8 +114,8 @@ fn mirror(i: isize, len: usize) -> usize {
 /// summed once (per row, three lines were summed again each time); each row's two passes
 /// along it (the central difference and the smoothing) are written with a mirrored value at
 /// either end, so that the columns run over the whole row in `add_row`'s vector blocks (with
-/// the two edge columns apart, a 32-column row left 8 of its 32 columns to scalar code, a
-/// 16-column row all 16: at the 32² level of a deep morph, 515 channels, the moments were a
+/// the two edge columns apart, a 32-column row left at least 8 of its columns to scalar
+/// code, a 16-column row at least half: at the 32² level of a deep morph, 515 channels, the moments were a
 /// fifth of the level's time). Every value takes the same operations in the same order as
 /// SPEC §6's formula at the edges and inside.
 #[inline(always)]
