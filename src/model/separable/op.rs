@@ -66,32 +66,28 @@ mod flex {
 
     fn apply_typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
         x: HostView,
-        rows: TensorData,
-        cols_t: TensorData,
+        rows: HostView,
+        cols_t: HostView,
     ) -> TensorData {
-        let (s, r, c) = (x.shape(), rows.shape().to_vec(), cols_t.shape().to_vec());
+        let (s, r, c) = (x.shape(), rows.shape(), cols_t.shape());
         assert!(
             s.len() == 4 && r.len() == 4 && c.len() == 4 && r[3] == s[2] && c[2] == s[3],
             "separable: operators {r:?} and {c:?} do not fit the maps {s:?}"
         );
         let (ho, h, w, wo) = (r[2], r[3], c[2], c[3]);
-        let (r, c) = (values::<T>(&rows), values::<T>(&cols_t));
-        let rows = Band::new(ho, h, |i, j| r[i * h + j]);
-        // `Cᵀ` is stored: C(j', j) = Cᵀ(j, j').
-        let cols = Band::new(wo, w, |i, j| c[j * wo + i]);
+        // Read in place: the operators are the model's constants, shared buffers that
+        // `into_data` copied on every call.
+        let (r, c) = (rows.values::<T>(), cols_t.values::<T>());
+        let rows = Band::from_row_major(ho, h, r);
+        // `Cᵀ` is stored: `C` column-major.
+        let cols = Band::from_column_major(wo, w, c);
         let out = host::apply(x.values::<T>(), &rows, &cols);
         TensorData::new(out, [s[0], s[1], ho, wo])
     }
 
-    /// A matrix's entries, borrowed.
-    fn values<T: burn::tensor::Element>(t: &TensorData) -> &[T] {
-        t.as_slice::<T>()
-            .expect("the operator shares the maps' dtype")
-    }
-
     impl SeparableOps for Flex {
         fn separable_apply(x: FlexTensor, rows: FlexTensor, cols_t: FlexTensor) -> FlexTensor {
-            let (x, rows, cols_t) = (HostView::new(x), rows.into_data(), cols_t.into_data());
+            let (x, rows, cols_t) = (HostView::new(x), HostView::new(rows), HostView::new(cols_t));
             let out = match x.dtype() {
                 DType::F32 => apply_typed::<f32>(x, rows, cols_t),
                 DType::F64 => apply_typed::<f64>(x, rows, cols_t),
