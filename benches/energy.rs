@@ -125,16 +125,23 @@ fn benches(c: &mut Criterion) {
                 let rgb = image(&grid, 3, 1.0);
                 let a = energy.anisotropy().compute(rgb.clone());
                 if channels == 3 {
-                    // Once per deformation step of a sweep.
+                    // One image, and a sweep's worth: the energy after a sweep takes the
+                    // anisotropies of all `K` frames at once (frames beyond the caches).
+                    let frames = Tensor::cat(vec![rgb.clone(); FRAMES], 0);
                     let mut group = c.benchmark_group("anisotropy");
                     group.sample_size(10).warm_up_time(Duration::from_secs(1));
-                    group.bench_with_input(BenchmarkId::new(backend.name(), n), &n, |b, _| {
-                        b.iter(|| {
-                            let out = energy.anisotropy().compute(rgb.clone());
-                            sync(&autodiff);
-                            out
-                        })
-                    });
+                    for (label, u) in [
+                        (backend.name().to_string(), &rgb),
+                        (format!("{}/K{FRAMES}", backend.name()), &frames),
+                    ] {
+                        group.bench_with_input(BenchmarkId::new(label, n), &n, |b, _| {
+                            b.iter(|| {
+                                let out = energy.anisotropy().compute(u.clone());
+                                sync(&autodiff);
+                                out
+                            })
+                        });
+                    }
                     group.finish();
                 }
                 let mut group = c.benchmark_group("step");

@@ -4,7 +4,7 @@ use burn::tensor::Tensor;
 
 use crate::backend::Capabilities;
 use crate::error::Result;
-use crate::model::energy::anisotropy_op::edge_weight;
+use crate::model::energy::anisotropy_op::anisotropy;
 use crate::model::grid::Grid;
 use crate::model::params::positive;
 use crate::model::separable::Separable;
@@ -63,12 +63,17 @@ impl Anisotropy {
     pub fn compute(&self, u: Tensor<4>) -> Tensor<3> {
         let [n, _, h, w] = u.dims();
         let u = u.detach();
-        let fused = Capabilities::of(&u.device()).fused_anisotropy;
+        if Capabilities::of(&u.device()).fused_anisotropy {
+            return anisotropy(
+                u,
+                self.along_rows.matrices(),
+                self.along_cols.matrices(),
+                self.xi1,
+                self.xi2,
+            );
+        }
         let d0 = self.along_rows.apply(u.clone());
         let d1 = self.along_cols.apply(u);
-        if fused {
-            return edge_weight(d0, d1, self.xi1, self.xi2);
-        }
         let norm2 = (d0.square() + d1.square()).sum_dim(1).reshape([n, h, w]);
         norm2.mul_scalar(-1.0 / self.xi1).exp().add_scalar(self.xi2)
     }

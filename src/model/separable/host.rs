@@ -106,6 +106,16 @@ impl<T: Real> Band<T> {
         }
     }
 
+    /// Rows of the matrix (outputs per line).
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+
+    /// Columns of the matrix (inputs per line).
+    pub fn cols(&self) -> usize {
+        self.cols
+    }
+
     /// Columns read per row.
     pub fn width(&self) -> usize {
         self.width
@@ -222,6 +232,30 @@ fn shifted_block<T: Real, const N: usize>(taps: &[T], line: &[T], out: &mut [May
     }
 }
 
+/// `N` consecutive outputs `j ..` of a pass along a line, each with its own taps and start
+/// (near the folded mirror, or where a stretch ends): the `N` sums side by side, each from
+/// zero in tap order. One output at a time, each sum was a chain of dependent adds.
+#[inline(always)]
+fn any_block<T: Real, const N: usize>(
+    band: &Band<T>,
+    j: usize,
+    line: &[T],
+    out: &mut [MaybeUninit<T>],
+) {
+    let width = band.width;
+    let taps: [&[T]; N] = std::array::from_fn(|l| &band.values[(j + l) * width..][..width]);
+    let from: [&[T]; N] = std::array::from_fn(|l| &line[band.start[j + l]..][..width]);
+    let mut acc = [T::default(); N];
+    for t in 0..width {
+        for l in 0..N {
+            acc[l] += taps[l][t] * from[l][t];
+        }
+    }
+    for (o, a) in out.iter_mut().zip(acc) {
+        o.write(a);
+    }
+}
+
 /// One line of a pass along the last axis, `out[j] = Σ_t taps_j[t] · line[start_j + t]`:
 /// across a stencil's interior (`runs`, [`Band::shifted_runs`]) as lanes of neighbouring
 /// outputs, 32 then 8 at a time (four independent sums per tap keep the adder busy), a dot
@@ -242,6 +276,10 @@ fn along_line<T: Real>(band: &Band<T>, runs: &[usize], line: &[T], out: &mut [Ma
             }
             8.. => {
                 shifted_block::<T, 8>(taps, from, &mut out[j..j + 8]);
+                j += 8;
+            }
+            _ if j + 8 <= band.rows => {
+                any_block::<T, 8>(band, j, line, &mut out[j..j + 8]);
                 j += 8;
             }
             _ => {
@@ -270,6 +308,26 @@ fn along_last_axis<T: Real>(x: &[T], band: &Band<T>) -> Vec<T> {
     // SAFETY: every line of the `len` values was written above.
     unsafe { out.set_len(len) };
     out
+}
+
+/// Row `i` of `R · x · Cᵀ` for one plane `x` (`H × W`, row-major) into `out` (`W'`
+/// values), through `down` (`W` values): the values [`apply`] gives for that row, bit for
+/// bit. `runs` are `cols`' [`Band::shifted_runs`]. For kernels that use a row while it is in
+/// cache (the anisotropy's weight) instead of a whole plane.
+pub fn apply_row<T: Real>(
+    x: &[T],
+    rows: &Band<T>,
+    cols: &Band<T>,
+    runs: &[usize],
+    i: usize,
+    down: &mut [MaybeUninit<T>],
+    out: &mut [MaybeUninit<T>],
+) {
+    let taps = &rows.values[i * rows.width..(i + 1) * rows.width];
+    combine_rows_simd(taps, x, rows.start[i], down);
+    // SAFETY: combine_rows wrote every value of `down` just now.
+    let down = unsafe { &*(std::ptr::from_mut(down) as *const [T]) };
+    along_line_simd(cols, runs, down, out);
 }
 
 /// `R · x · Cᵀ` of every plane of `x`.

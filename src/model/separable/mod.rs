@@ -42,7 +42,6 @@ impl Separable {
     }
 
     /// `R` and `Cᵀ`, `[1, 1, H', H]` and `[1, 1, W, W']`.
-    #[cfg(feature = "check")]
     pub(crate) fn matrices(&self) -> (Tensor<4>, Tensor<4>) {
         (self.rows.clone(), self.cols_t.clone())
     }
