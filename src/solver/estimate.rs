@@ -6,7 +6,8 @@
 //! warps, convolutions and elementwise passes, all linear in it). Timing the coarsest level
 //! alone would read mostly the fixed part and, scaled by pixels to the finest level,
 //! overestimate a 256² morph about twice; so the calibration times the coarsest level and
-//! the first level above it of at least [`CALIBRATION_PIXELS`] (or the finest), and fits
+//! the first level above it of at least [`CALIBRATION_PIXELS`] (RGB:
+//! [`RGB_CALIBRATION_PIXELS`]) pixels (or the finest), and fits
 //! both parts. The deep
 //! model's feature-only sweeps are timed on the second level too, as a fraction of a joint
 //! sweep.
@@ -33,6 +34,18 @@ use crate::solver::observer::Phase;
 /// The second calibration level is the first with at least this many pixels (64²), where a
 /// sweep's time is mostly work, not overhead (or the finest, if smaller).
 pub const CALIBRATION_PIXELS: usize = 64 * 64;
+
+/// The RGB model's second calibration level: the first with at least this many pixels
+/// (128²). An RGB sweep at 64² is still mostly overhead per value (3 channels), so the line
+/// through 16² (or 32²) and 64² overestimated the finer levels' sweeps, and one timed sweep
+/// a level left the line to the machine's noise: measured 2026-12-07 (Intel Xeon), the
+/// 256² sweeps of default morphs 1.6–2.7× their estimate (`faces`: 2 min 38 s estimated
+/// for all 250 sweeps a level, about 67 s measured; `cars`: 1 min 44 s for 73 s), and
+/// `--quality paper` `faces` at 512² estimated 5 min 54 s … 9 min 28 s for 3 min 54 s.
+/// Through 128², each point the median of three timed sweeps: `faces` 59–62 s, `cars`
+/// 62–77 s, the paper morph 3 min 53 s … 4 min 48 s (−15 … +23 %), for about 0.2 s more
+/// calibration.
+pub const RGB_CALIBRATION_PIXELS: usize = 128 * 128;
 
 /// The most steps a calibration path has: the default `K` = 15 is timed whole, and a path
 /// of thousands of steps is timed on a part (its first sweep would otherwise take as long
@@ -111,8 +124,9 @@ impl TimeEstimate {
     }
 }
 
-/// Seconds of `sweeps` sweeps of `kind` (each followed by the energy evaluation the driver
-/// runs after every sweep), after one untimed sweep that warms the allocator and caches.
+/// Seconds of a sweep of `kind` (followed by the energy evaluation the driver runs after
+/// every sweep): the median of `sweeps` timed ones, after one untimed sweep that warms the
+/// allocator and caches.
 fn time_sweeps(
     ipalm: &Ipalm,
     state: &mut LevelState,
@@ -129,14 +143,18 @@ fn time_sweeps(
         Ok(())
     };
     sweep(state)?;
-    let started = Instant::now();
+    let mut seconds = Vec::with_capacity(sweeps);
     for _ in 0..sweeps {
         if interrupt.load(Ordering::Relaxed) {
             return Ok(None);
         }
+        let started = Instant::now();
         sweep(state)?;
+        seconds.push(started.elapsed().as_secs_f64());
     }
-    Ok(Some(started.elapsed().as_secs_f64() / sweeps as f64))
+    // The median: one sweep slowed by the machine does not move it.
+    seconds.sort_by(f64::total_cmp);
+    Ok(Some(seconds[seconds.len() / 2]))
 }
 
 impl Multilevel {
@@ -165,13 +183,19 @@ impl Multilevel {
         let k = cfg.steps;
         let timed_steps = k.min(CALIBRATION_STEPS);
         // Two points whenever there are two levels: the coarsest, and the first level above
-        // it of at least CALIBRATION_PIXELS (else the finest). One point read as all rate
+        // it of at least the model's calibration pixels (else the finest). One point read as all rate
         // would scale the coarsest level's fixed part up with the pixels (measured: a 256²
         // morph whose coarsest level is 64² was estimated 50 % high that way).
+        // RGB sweeps are cheap: three timed (the median) where the deep model's calibration,
+        // its factor fitted to one, times one.
+        let (threshold, timed_sweeps) = match model {
+            FeatureModel::Deep(_) => (CALIBRATION_PIXELS, 1),
+            FeatureModel::Rgb => (RGB_CALIBRATION_PIXELS, 3),
+        };
         let second = sizes
             .iter()
             .skip(1)
-            .position(|&(lh, lw)| lh * lw >= CALIBRATION_PIXELS)
+            .position(|&(lh, lw)| lh * lw >= threshold)
             .map_or(sizes.len() - 1, |p| p + 1);
         // Work of a timed sweep on each level: K · C · H · W with the timed K.
         let mut work = Vec::with_capacity(sizes.len());
@@ -193,7 +217,13 @@ impl Multilevel {
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
             let mut state =
                 LevelState::initial(&grid, &layout, f_a, f_b, timed_steps, cfg.params.delta)?;
-            let Some(joint) = time_sweeps(&ipalm, &mut state, SweepKind::Joint, 1, interrupt)?
+            let Some(joint) = time_sweeps(
+                &ipalm,
+                &mut state,
+                SweepKind::Joint,
+                timed_sweeps,
+                interrupt,
+            )?
             else {
                 return Ok(None);
             };
