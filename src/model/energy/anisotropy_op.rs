@@ -1,17 +1,17 @@
-//! The edge-stopping weight `exp(−|∇u|²/ξ₁) + ξ₂` of the anisotropy (SPEC §3) from its two
-//! smoothed derivatives, as one custom Burn op (Burn 0.22's `#[backend_extension]`).
+//! The edge-stopping anisotropy `a[u] = exp(−|∇u|²/ξ₁) + ξ₂` of SPEC §3 from the images, as
+//! one custom Burn op (Burn 0.22's `#[backend_extension]`).
 //!
-//! Composed, the weight after the two separable operators is six passes over the frames:
-//! the two squares, their sum, the sum over the colour channels, the scaling and the
-//! exponential (flex's elementwise ops run one at a time on the calling thread; its `exp` is
-//! libm's, one value at a time). A profile of a 256² RGB sweep had those at about a sixth of
-//! the anisotropy's samples. Fused, it is one pass split over the cores, its exponential
-//! eight lanes at a time (`crate::model::cpu::elementary`).
+//! Composed, it is two separable operators (each two passes, each writing a frame-sized
+//! intermediate), then six passes for the weight: the two squares, their sum, the sum over
+//! the colour channels, the scaling and the exponential (flex's elementwise ops run one at a
+//! time on the calling thread; its `exp` is libm's, one value at a time). Fused, each output
+//! row's derivatives are computed and weighted while in cache, split over the cores, the
+//! exponential eight lanes at a time (`crate::model::cpu::elementary`).
 //!
 //! - flex: the host kernel below.
 //! - autodiff: a constant. The anisotropy is a fixed weight of every derivative the model
 //!   takes, so its input is detached ([`super::anisotropy::Anisotropy::compute`]).
-//! - ndarray and wgpu compose the weight from tensor ops (not served here).
+//! - ndarray and wgpu compose it from tensor ops (not served here).
 
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Backend, Dispatch, backend_extension};
@@ -22,7 +22,7 @@ use std::mem::MaybeUninit;
 use crate::model::cpu::Real;
 use crate::model::separable::host::{Band, apply_row};
 
-/// The weight's primitives (flex only: the other backends compose them).
+/// The anisotropy's primitive (flex only: the other backends compose it).
 #[backend_extension(Flex: cfg(feature = "flex"), Autodiff)]
 pub trait AnisotropyOps: Backend {
     /// The whole anisotropy `a[u]` from the images: [`anisotropy`]'s primitive.
@@ -36,33 +36,6 @@ pub trait AnisotropyOps: Backend {
         xi1: f64,
         xi2: f64,
     ) -> FloatTensor<Self>;
-    /// `exp(−Σ_c (d0_c² + d1_c²) / ξ₁) + ξ₂`; shapes as in [`edge_weight`].
-    fn edge_weight(
-        d0: FloatTensor<Self>,
-        d1: FloatTensor<Self>,
-        xi1: f64,
-        xi2: f64,
-    ) -> FloatTensor<Self>;
-}
-
-/// `exp(−Σ_c (d0_c² + d1_c²) / ξ₁) + ξ₂` at every pixel by the fused op: the anisotropy of
-/// SPEC §3 from the smoothed derivatives along rows (`d0`) and columns (`d1`). Not
-/// differentiable (a constant, as the anisotropy is). Only on a backend that serves it (flex).
-///
-/// # Shapes
-/// - `d0`, `d1`: `[N, C, H, W]`; output `[N, H, W]`
-pub fn edge_weight(d0: Tensor<4>, d1: Tensor<4>, xi1: f64, xi2: f64) -> Tensor<3> {
-    assert_eq!(
-        d0.dims(),
-        d1.dims(),
-        "edge weight: the derivatives' shapes differ"
-    );
-    Tensor::from_dispatch(Dispatch::edge_weight(
-        d0.detach().into_dispatch(),
-        d1.detach().into_dispatch(),
-        xi1,
-        xi2,
-    ))
 }
 
 /// `a[u] = exp(−Σ_c (d0_c² + d1_c²) / ξ₁) + ξ₂` with `d0 = R₀ u C₀ᵀ`, `d1 = R₁ u C₁ᵀ` (the
@@ -70,7 +43,7 @@ pub fn edge_weight(d0: Tensor<4>, d1: Tensor<4>, xi1: f64, xi2: f64) -> Tensor<3
 /// output row's derivatives are computed, squared and summed while in cache. Composed, the
 /// two operators wrote four frame-sized intermediates (each pass of each operator) that the
 /// weight read back: at 512² and `K = 15` a sweep's anisotropies moved about half a
-/// gigabyte. The same values as [`edge_weight`] of the two operators' outputs, bit for bit.
+/// gigabyte. The same values as the weight of the two operators' outputs, bit for bit.
 /// Not differentiable (a constant). Only on a backend that serves it (flex).
 ///
 /// # Shapes
@@ -97,10 +70,12 @@ pub fn anisotropy(
 /// Pixels per task: enough that a task outweighs rayon's overhead.
 const PIXELS_PER_TASK: usize = 4096;
 
-/// The host kernel of [`edge_weight`]: `d0`, `d1` `[N, C, H·W]`, `out` `[N, H·W]`. The same
-/// operations as the composed weight: the squares summed per pixel over the channels in
+/// The weight from given derivatives `d0`, `d1` `[N, C, H·W]` into `out` `[N, H·W]`: what
+/// [`anisotropy`] computes row by row, here whole frames at a time: its tests' reference.
+/// The same operations as the composed weight: the squares summed per pixel over the channels in
 /// order, scaled by `−1/ξ₁` rounded once, the exponential, `+ ξ₂`.
-pub fn host_edge_weight<T: Real>(
+#[cfg(test)]
+fn host_edge_weight<T: Real>(
     d0: &[T],
     d1: &[T],
     [n, c, plane]: [usize; 3],
@@ -150,9 +125,9 @@ pub fn host_edge_weight<T: Real>(
 }
 
 /// `exp(scaled) + offset` of a row of pixels `first ..` of a plane of `plane` pixels, as
-/// [`host_edge_weight`] takes it: eight lanes at a time ([`Real::exp8`]: each lane's value
-/// does not depend on the others, so any eight pixels may share a call), except the plane's
-/// last `plane mod 8` pixels, which it takes one at a time.
+/// the whole-frame weight (`host_edge_weight`, the tests' reference) takes it: eight lanes
+/// at a time ([`Real::exp8`]: each lane's value does not depend on the others, so any eight
+/// pixels may share a call), except the plane's last `plane mod 8` pixels, one at a time.
 fn edge_weight_row<T: Real>(
     scaled: &[T],
     first: usize,
@@ -256,34 +231,10 @@ mod flex {
     use burn::backend::flex::FlexTensor;
     use burn::tensor::{DType, TensorData};
 
-    use super::{AnisotropyOps, host_anisotropy, host_edge_weight};
+    use super::{AnisotropyOps, host_anisotropy};
     use crate::model::cpu::Real;
     use crate::model::host_view::HostView;
     use crate::model::separable::host::Band;
-
-    fn weight_typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
-        d0: &HostView,
-        d1: &HostView,
-        xi1: f64,
-        xi2: f64,
-    ) -> TensorData {
-        let s = d0.shape();
-        assert!(
-            s.len() == 4 && d1.shape() == s,
-            "edge weight: derivatives {s:?} and {:?} are not one [N, C, H, W]",
-            d1.shape()
-        );
-        let mut out = vec![T::default(); s[0] * s[2] * s[3]];
-        host_edge_weight(
-            d0.values(),
-            d1.values(),
-            [s[0], s[1], s[2] * s[3]],
-            xi1,
-            xi2,
-            &mut out,
-        );
-        TensorData::new(out, [s[0], s[2], s[3]])
-    }
 
     fn anisotropy_typed<T: Real + burn::tensor::Element + bytemuck::Pod>(
         u: &HostView,
@@ -340,16 +291,6 @@ mod flex {
                 other => panic!("the anisotropy runs in float32 or float64, not {other:?}"),
             })
         }
-
-        fn edge_weight(d0: FlexTensor, d1: FlexTensor, xi1: f64, xi2: f64) -> FlexTensor {
-            let (d0, d1) = (HostView::new(d0), HostView::new(d1));
-            assert_eq!(d0.dtype(), d1.dtype(), "edge weight: dtypes differ");
-            FlexTensor::from_data(match d0.dtype() {
-                DType::F32 => weight_typed::<f32>(&d0, &d1, xi1, xi2),
-                DType::F64 => weight_typed::<f64>(&d0, &d1, xi1, xi2),
-                other => panic!("the edge weight runs in float32 or float64, not {other:?}"),
-            })
-        }
     }
 }
 
@@ -375,17 +316,6 @@ mod autodiff {
             let [u, rows0, cols0_t, rows1, cols1_t] =
                 [u, rows0, cols0_t, rows1, cols1_t].map(|t| t.into_parts().0);
             FloatTensor::<Self>::new(B::anisotropy(u, rows0, cols0_t, rows1, cols1_t, xi1, xi2))
-        }
-
-        /// A constant: no gradient flows through it (its inputs are detached).
-        fn edge_weight(
-            d0: FloatTensor<Self>,
-            d1: FloatTensor<Self>,
-            xi1: f64,
-            xi2: f64,
-        ) -> FloatTensor<Self> {
-            let ((d0, _), (d1, _)) = (d0.into_parts(), d1.into_parts());
-            FloatTensor::<Self>::new(B::edge_weight(d0, d1, xi1, xi2))
         }
     }
 }

@@ -39,18 +39,7 @@ impl<T: Real> Band<T> {
     ///
     /// If the matrix is empty or `data` does not hold `rows · cols` values.
     pub fn from_row_major(rows: usize, cols: usize, data: &[T]) -> Self {
-        assert!(
-            rows > 0 && cols > 0 && data.len() == rows * cols,
-            "a band of {} values as a {rows} × {cols} matrix",
-            data.len()
-        );
-        let mut spans = Spans::new(rows);
-        for (i, row) in data.chunks(cols).enumerate() {
-            for (j, &v) in row.iter().enumerate() {
-                spans.see(i, j, v);
-            }
-        }
-        Self::from_spans(cols, &spans, |i, j| data[i * cols + j])
+        Self::from_dense(rows, cols, data, false)
     }
 
     /// The band of the `rows × cols` matrix whose transpose is stored row-major in `data`:
@@ -59,20 +48,34 @@ impl<T: Real> Band<T> {
     ///
     /// # Panics
     ///
-    /// If the matrix is empty or `data` does not hold `rows · cols` values.
+    /// As [`from_row_major`](Self::from_row_major).
     pub fn from_column_major(rows: usize, cols: usize, data: &[T]) -> Self {
+        Self::from_dense(rows, cols, data, true)
+    }
+
+    /// The band of a dense matrix, `data` read in storage order.
+    fn from_dense(rows: usize, cols: usize, data: &[T], column_major: bool) -> Self {
         assert!(
             rows > 0 && cols > 0 && data.len() == rows * cols,
             "a band of {} values as a {rows} × {cols} matrix",
             data.len()
         );
+        let line = if column_major { rows } else { cols };
         let mut spans = Spans::new(rows);
-        for (j, column) in data.chunks(rows).enumerate() {
-            for (i, &v) in column.iter().enumerate() {
+        for (l, values) in data.chunks(line).enumerate() {
+            for (k, &v) in values.iter().enumerate() {
+                let (i, j) = if column_major { (k, l) } else { (l, k) };
                 spans.see(i, j, v);
             }
         }
-        Self::from_spans(cols, &spans, |i, j| data[j * rows + i])
+        let index = |i: usize, j: usize| {
+            if column_major {
+                j * rows + i
+            } else {
+                i * cols + j
+            }
+        };
+        Self::from_spans(cols, &spans, |i, j| data[index(i, j)])
     }
 
     /// The band of rows with nonzeros within `spans`, entries `entry(i, j)`.
