@@ -272,7 +272,7 @@ mod flex {
             phi.shape()
         );
         let dims = [s[0], s[1], s[2], s[3]];
-        let mut out = vec![T::default(); s[0] * 5 * s[2] * s[3]];
+        let mut out = crate::model::cpu::zeros::<T>(s[0] * 5 * s[2] * s[3]);
         host_moments(warped.values(), prev.values(), phi.values(), dims, &mut out);
         TensorData::new(out, [s[0], 5, s[2], s[3]])
     }

@@ -6,6 +6,7 @@
 //! ops (`warp/host`, `separable/host`, the `*_op.rs` files); they import from here, never
 //! from each other.
 
+use std::mem::MaybeUninit;
 use std::ops::{Add, AddAssign, Div, Mul, Sub};
 
 use rayon::prelude::*;
@@ -443,7 +444,7 @@ pub(crate) fn combine<T: Copy + Send + Sync>(
         .zip(a.par_chunks(CHUNK).zip(b.par_chunks(CHUNK)))
         .enumerate()
         .for_each(|(chunk, (out, (a, b)))| {
-            combine_span(out, a, b, chunk * CHUNK, per_segment, s, &f);
+            combine_span_simd(out, a, b, chunk * CHUNK, per_segment, s, &f);
         });
     // SAFETY: every one of the `a.len()` values was written above.
     unsafe { out.set_len(a.len()) };
@@ -464,12 +465,48 @@ fn segment_length<T>(a: &[T], b: &[T], s: &[T]) -> usize {
     per_segment
 }
 
+/// [`combine_span`] compiled for AVX2 where the CPU has it (as [`simd_dispatch`], which
+/// takes no closure): the gradient steps and extrapolations of a feature step were baseline
+/// (SSE2) loops of four lanes, 9 % of a deep sweep's samples at 256².
+#[cfg(any(feature = "flex", test))]
+#[inline(always)]
+fn combine_span_simd<T: Copy>(
+    out: &mut [MaybeUninit<T>],
+    a: &[T],
+    b: &[T],
+    first: usize,
+    per_segment: usize,
+    s: &[T],
+    f: &impl Fn(T, T, T) -> T,
+) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        #[target_feature(enable = "avx2")]
+        fn wide<T: Copy>(
+            out: &mut [MaybeUninit<T>],
+            a: &[T],
+            b: &[T],
+            first: usize,
+            per_segment: usize,
+            s: &[T],
+            f: &impl Fn(T, T, T) -> T,
+        ) {
+            combine_span(out, a, b, first, per_segment, s, f)
+        }
+        if has_avx2() {
+            // SAFETY: the CPU has AVX2, checked just now.
+            return unsafe { wide(out, a, b, first, per_segment, s, f) };
+        }
+    }
+    combine_span(out, a, b, first, per_segment, s, f)
+}
+
 /// [`combine`] of one span of values starting at value `first` of the whole: the span's runs
 /// of one segment each, so the inner loop vectorises.
 #[cfg(any(feature = "flex", test))]
 #[inline(always)]
 fn combine_span<T: Copy>(
-    out: &mut [std::mem::MaybeUninit<T>],
+    out: &mut [MaybeUninit<T>],
     a: &[T],
     b: &[T],
     first: usize,
@@ -537,7 +574,7 @@ pub(crate) fn combine_distance2<T: crate::model::decision::flex::Value + Send>(
         .zip(spans)
         .map(|(&(_, first, len), span)| {
             let at = first..first + len;
-            combine_span(
+            combine_span_simd(
                 span,
                 &a[at.clone()],
                 &b[at.clone()],
@@ -585,6 +622,23 @@ impl<T> Shared<T> {
         // SAFETY: the caller's promise: `i` in bounds.
         unsafe { self.0.add(i) }
     }
+}
+
+/// Values per task of [`zeros`]: 256 KiB of float32, a few pages each.
+const ZEROS_PER_TASK: usize = 1 << 16;
+
+/// `len` zeros, written by the cores side by side: a kernel's output or accumulator.
+/// `vec![0; len]` of a frame zeroed it on the calling thread alone (the allocator's
+/// `memset` and the page faults of fresh memory), while the other core waited for the
+/// kernel: 4.5 % of an RGB 512² sweep's samples, all on one thread.
+pub(crate) fn zeros<T: Copy + Default + Send + Sync>(len: usize) -> Vec<T> {
+    let mut values = Vec::with_capacity(len);
+    values.spare_capacity_mut()[..len]
+        .par_chunks_mut(ZEROS_PER_TASK)
+        .for_each(|chunk| chunk.fill(MaybeUninit::new(T::default())));
+    // SAFETY: the first `len` values were written just now.
+    unsafe { values.set_len(len) };
+    values
 }
 
 /// Pixels per task: large enough that a task outweighs rayon's overhead, small enough that
@@ -769,5 +823,18 @@ mod tests {
     fn transposes_sixteen_rows_of_eight_in_either_precision() {
         transposes_sixteen_rows_of_eight::<f32>();
         transposes_sixteen_rows_of_eight::<f64>();
+    }
+
+    /// Every value is a zero, across tasks and a short last one; none at all works too. Each
+    /// length first frees a buffer of NaNs as long, which the allocator may hand back.
+    #[test]
+    fn zeros_are_zeros_of_the_length_asked() {
+        for len in [0, 1, ZEROS_PER_TASK - 1, 3 * ZEROS_PER_TASK + 17] {
+            drop(std::hint::black_box(vec![f32::NAN; len]));
+            let v = zeros::<f32>(len);
+            assert_eq!(v.len(), len);
+            assert!(v.iter().all(|&x| x.to_bits() == 0), "{len}");
+        }
+        assert!(zeros::<f64>(1000).iter().all(|&x| x.to_bits() == 0));
     }
 }

@@ -377,7 +377,7 @@ pub fn host_density_grad<T: Real>(
     assert_eq!(out.len(), n * 2 * plane, "gradient");
     let (lambda, mu) = (T::from_f64(lambda), T::from_f64(mu));
     // `g a ∂W/∂J`, four planes per image: the adjoint below reads each entry twice.
-    let mut dj = vec![T::default(); n * 4 * plane];
+    let mut dj = crate::model::cpu::zeros(n * 4 * plane);
     dj.par_chunks_mut(4 * plane)
         .enumerate()
         .for_each(|(b, entries)| {
@@ -439,7 +439,7 @@ mod flex {
     use burn::tensor::{DType, TensorData};
 
     use super::{DensityOps, host_density, host_density_grad, host_min_det};
-    use crate::model::cpu::Real;
+    use crate::model::cpu::{Real, zeros};
     use crate::model::host_view::HostView;
 
     trait Kernel: Real + burn::tensor::Element + bytemuck::Pod {}
@@ -459,7 +459,7 @@ mod flex {
 
     fn density_typed<T: Kernel>(phi: &HostView, a: &HostView, lambda: f64, mu: f64) -> TensorData {
         let d = dims(phi, a, "weight");
-        let mut out = vec![T::default(); d.iter().product()];
+        let mut out = zeros::<T>(d.iter().product());
         host_density(phi.values(), a.values(), d, lambda, mu, &mut out);
         TensorData::new(out, d)
     }
@@ -473,7 +473,7 @@ mod flex {
     ) -> TensorData {
         let d = dims(phi, a, "weight");
         assert_eq!(dims(phi, g, "output gradient"), d);
-        let mut out = vec![T::default(); 2 * d.iter().product::<usize>()];
+        let mut out = zeros::<T>(2 * d.iter().product::<usize>());
         host_density_grad(
             phi.values(),
             a.values(),

@@ -115,6 +115,7 @@ pub(super) mod flex {
 
     use super::super::host::{self, Dims, SplineReal};
     use super::{SplineOps, dims};
+    use crate::model::cpu::zeros;
     use crate::model::host_view::HostView;
 
     /// The tensor's values as contiguous host data.
@@ -158,7 +159,7 @@ pub(super) mod flex {
         let s = x.shape();
         let (h, w) = (s[s.len() - 2], s[s.len() - 1]);
         let source = x.values::<T>();
-        let mut out = vec![T::default(); source.len()];
+        let mut out = zeros(source.len());
         host::prefilter_into(source, &mut out, h, w, transpose);
         TensorData::new(out, s)
     }
@@ -201,7 +202,7 @@ pub(super) mod flex {
         grad: &HostView,
         d: Dims,
     ) -> TensorData {
-        let mut out = vec![T::default(); d.n * 2 * d.ho * d.wo];
+        let mut out = zeros(d.n * 2 * d.ho * d.wo);
         let (phi, grad) = (phi.values(), grad.values());
         match coeffs {
             Coefficients::Planar(c) => {

@@ -246,7 +246,7 @@ pub fn sample_adjoint_uninit<T: SplineReal>(
         let range = part * per_part..((part + 1) * per_part).min(points);
         scatter_simd(grad, phi, target, d, b, ch..ch + 1, range);
     };
-    let mut partial = vec![T::default(); planes * parts * plane];
+    let mut partial = zeros(planes * parts * plane);
     partial
         .par_chunks_mut(plane)
         .enumerate()

@@ -64,7 +64,7 @@ pub(super) unsafe fn as_uninit<T>(out: &mut [T]) -> &mut [MaybeUninit<T>] {
 
 /// One image's `C` planes of `plane` values, channels-last: `out[p·C + c] = planar[c·plane + p]`.
 pub(super) fn channels_last<T: SplineReal>(planar: &[T], c: usize, plane: usize) -> Vec<T> {
-    let mut out = vec![T::default(); planar.len()];
+    let mut out = zeros(planar.len());
     channels_last_into(planar, c, plane, &mut out);
     out
 }

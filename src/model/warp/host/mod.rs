@@ -31,7 +31,7 @@ use rayon::prelude::*;
 
 pub(crate) use crate::model::cpu::{
     PIXELS_PER_TASK, Real, Shared, channels_last_into, has_avx2, pixels_per_task, simd_dispatch,
-    transpose_pixels,
+    transpose_pixels, zeros,
 };
 
 pub mod adjoint;

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 
 use super::{
     Axis, AxisLanes, Dims, LANES, PIXELS_PER_TASK, Shared, SplineReal, contiguous,
-    deformation_planes, simd_dispatch, stencil as stencil_offsets,
+    deformation_planes, simd_dispatch, stencil as stencil_offsets, zeros,
 };
 
 /// Channels per pixel of a quad table.
@@ -266,7 +266,7 @@ pub(super) fn adjoint<T: SplineReal>(
 ) {
     let (points, plane) = (d.points(), d.h * d.w);
     let per_part = points.div_ceil(parts);
-    let mut tables = vec![T::default(); d.n * parts * plane * QUAD];
+    let mut tables = zeros(d.n * parts * plane * QUAD);
     tables
         .par_chunks_mut(plane * QUAD)
         .enumerate()
