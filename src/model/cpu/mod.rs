@@ -2,7 +2,8 @@
 //! types they run in ([`Real`]), the AVX2 dispatch of their hot loops ([`has_avx2`],
 //! [`simd_dispatch`]), a pointer that tasks writing disjoint indices share ([`Shared`]),
 //! an elementwise map of two slices with one factor per segment split over the cores
-//! ([`combine`]), and vectorisable `ln`/`exp` ([`elementary`]). The kernels themselves live beside their
+//! ([`combine`]), frame-sized zeros written by every core ([`zeros`]), and vectorisable
+//! `ln`/`exp` ([`elementary`]). The kernels themselves live beside their
 //! ops (`warp/host`, `separable/host`, the `*_op.rs` files); they import from here, never
 //! from each other.
 
