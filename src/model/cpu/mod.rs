@@ -378,17 +378,19 @@ pub(crate) fn has_avx2() -> bool {
     }
 }
 
-/// `fn $name<T: Bound>(args)` (any bound that implies [`Real`]) calling the `#[inline(always)]` function `$body` with the same
+/// `fn $name<T: Bound>(args)` (any bound that implies [`Real`]; more type parameters, such
+/// as a closure's, may follow) calling the `#[inline(always)]` function `$body` with the same
 /// arguments, compiled for AVX2 where the CPU has it ([`has_avx2`]) and for the baseline
 /// otherwise. Both copies are the same source, so they compute the same values (no fused
 /// multiply-adds are introduced: Rust does not contract `a * b + c`).
 macro_rules! simd_dispatch {
-    ($vis:vis fn $name:ident<$t:ident: $bound:path>($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
-        $vis fn $name<$t: $bound>($($arg: $ty),*) {
+    ($(#[$doc:meta])* $vis:vis fn $name:ident<$($t:ident: $bound:path),+>($($arg:ident: $ty:ty),* $(,)?) => $body:ident) => {
+        $(#[$doc])*
+        $vis fn $name<$($t: $bound),+>($($arg: $ty),*) {
             #[cfg(target_arch = "x86_64")]
             {
                 #[target_feature(enable = "avx2")]
-                fn wide<$t: $bound>($($arg: $ty),*) {
+                fn wide<$($t: $bound),+>($($arg: $ty),*) {
                     $body($($arg),*)
                 }
                 if $crate::model::cpu::has_avx2() {
@@ -466,41 +468,16 @@ fn segment_length<T>(a: &[T], b: &[T], s: &[T]) -> usize {
     per_segment
 }
 
-/// [`combine_span`] compiled for AVX2 where the CPU has it (as [`simd_dispatch`], which
-/// takes no closure): the gradient steps and extrapolations of a feature step were baseline
-/// (SSE2) loops of four lanes, 9 % of a deep sweep's samples at 256².
-#[cfg(any(feature = "flex", test))]
-#[inline(always)]
-fn combine_span_simd<T: Copy>(
-    out: &mut [MaybeUninit<T>],
-    a: &[T],
-    b: &[T],
-    first: usize,
-    per_segment: usize,
-    s: &[T],
-    f: &impl Fn(T, T, T) -> T,
-) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        #[target_feature(enable = "avx2")]
-        fn wide<T: Copy>(
-            out: &mut [MaybeUninit<T>],
-            a: &[T],
-            b: &[T],
-            first: usize,
-            per_segment: usize,
-            s: &[T],
-            f: &impl Fn(T, T, T) -> T,
-        ) {
-            combine_span(out, a, b, first, per_segment, s, f)
-        }
-        if has_avx2() {
-            // SAFETY: the CPU has AVX2, checked just now.
-            return unsafe { wide(out, a, b, first, per_segment, s, f) };
-        }
-    }
-    combine_span(out, a, b, first, per_segment, s, f)
-}
+simd_dispatch!(
+    /// [`combine_span`] compiled for AVX2 where the CPU has it: the gradient steps and
+    /// extrapolations of a feature step were baseline (SSE2) loops of four lanes, 9 % of a
+    /// deep sweep's samples at 256².
+    #[cfg(any(feature = "flex", test))]
+    fn combine_span_simd<T: Copy, F: Fn(T, T, T) -> T>(
+        out: &mut [MaybeUninit<T>], a: &[T], b: &[T], first: usize, per_segment: usize, s: &[T],
+        f: &F
+    ) => combine_span
+);
 
 /// [`combine`] of one span of values starting at value `first` of the whole: the span's runs
 /// of one segment each, so the inner loop vectorises.
