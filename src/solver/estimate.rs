@@ -44,7 +44,8 @@ pub const CALIBRATION_PIXELS: usize = 64 * 64;
 /// `--quality paper` `faces` at 512² estimated 5 min 54 s … 9 min 28 s for 3 min 54 s.
 /// Through 128², each point the median of three timed sweeps: `faces` 59–62 s, `cars`
 /// 62–77 s, the paper morph 3 min 53 s … 4 min 48 s (−15 … +23 %), for about 0.2 s more
-/// calibration.
+/// calibration (each point now the median of the sweeps of a third of a second,
+/// three at least).
 pub const RGB_CALIBRATION_PIXELS: usize = 128 * 128;
 
 /// The most steps a calibration path has: the default `K` = 15 is timed whole, and a path
@@ -124,14 +125,45 @@ impl TimeEstimate {
     }
 }
 
+/// How many sweeps a calibration level times: at least `sweeps`, and more until they add up
+/// to `seconds` (at most [`MOST_TIMED_SWEEPS`]).
+#[derive(Clone, Copy, Debug)]
+struct Timing {
+    sweeps: usize,
+    seconds: f64,
+}
+
+/// The most sweeps [`Timing`] times on one level.
+const MOST_TIMED_SWEEPS: usize = 40;
+
+/// The RGB model's calibration on each level: sweeps until a third of a second. Three
+/// sweeps of 128² (about 25 ms each on the 2-core AMD EPYC of docs/benchmarks.md) left the
+/// line to the machine's noise: five starts of the same `--quality paper` 512² morph
+/// estimated 1 min 52 s … 3 min 34 s (2026-12-07; the run took 2 min 23 s and 2 min 49 s),
+/// and the 512² sweep is 16 times the 128² one. Timed so, 19 starts gave 2 min 00 s … 3 min
+/// 48 s, 16 of them 2 min 00 s … 2 min 29 s (of 14 starts before, 8 in that range): what
+/// remains is the machine itself running a whole second slower (every sweep of the
+/// outliers' 128² level took 35–45 ms, against 25–30 ms).
+const RGB_TIMING: Timing = Timing {
+    sweeps: 3,
+    seconds: 0.3,
+};
+
+/// The deep model's: one sweep (a 64² deep sweep is already a tenth of a second or more,
+/// and its running factor, [`DEEP_RUNNING_LEVEL`], was fitted to one).
+const DEEP_TIMING: Timing = Timing {
+    sweeps: 1,
+    seconds: 0.0,
+};
+
 /// Seconds of a sweep of `kind` (followed by the energy evaluation the driver runs after
-/// every sweep): the median of `sweeps` timed ones, after one untimed sweep that warms the
-/// allocator and caches.
+/// every sweep): the median of the sweeps `timing` asks for, after one untimed sweep that
+/// warms the allocator and caches.
 fn time_sweeps(
     ipalm: &Ipalm,
     state: &mut LevelState,
     kind: SweepKind,
-    sweeps: usize,
+    timing: Timing,
     interrupt: &AtomicBool,
 ) -> Result<Option<f64>> {
     // As the driver runs them: each sweep starts from what the previous one carried.
@@ -143,8 +175,10 @@ fn time_sweeps(
         Ok(())
     };
     sweep(state)?;
-    let mut seconds = Vec::with_capacity(sweeps);
-    for _ in 0..sweeps {
+    let mut seconds: Vec<f64> = Vec::with_capacity(timing.sweeps);
+    while seconds.len() < MOST_TIMED_SWEEPS
+        && (seconds.len() < timing.sweeps || seconds.iter().sum::<f64>() < timing.seconds)
+    {
         if interrupt.load(Ordering::Relaxed) {
             return Ok(None);
         }
@@ -186,11 +220,9 @@ impl Multilevel {
         // it of at least the model's calibration pixels (else the finest). One point read as all rate
         // would scale the coarsest level's fixed part up with the pixels (measured: a 256²
         // morph whose coarsest level is 64² was estimated 50 % high that way).
-        // RGB sweeps are cheap: three timed (the median) where the deep model's calibration,
-        // its factor fitted to one, times one.
-        let (threshold, timed_sweeps) = match model {
-            FeatureModel::Deep(_) => (CALIBRATION_PIXELS, 1),
-            FeatureModel::Rgb => (RGB_CALIBRATION_PIXELS, 3),
+        let (threshold, timing) = match model {
+            FeatureModel::Deep(_) => (CALIBRATION_PIXELS, DEEP_TIMING),
+            FeatureModel::Rgb => (RGB_CALIBRATION_PIXELS, RGB_TIMING),
         };
         let second = sizes
             .iter()
@@ -217,19 +249,18 @@ impl Multilevel {
             let ipalm = Ipalm::new(&grid, cfg.params, layout.clone(), cfg.ipalm)?;
             let mut state =
                 LevelState::initial(&grid, &layout, f_a, f_b, timed_steps, cfg.params.delta)?;
-            let Some(joint) = time_sweeps(
-                &ipalm,
-                &mut state,
-                SweepKind::Joint,
-                timed_sweeps,
-                interrupt,
-            )?
+            let Some(joint) = time_sweeps(&ipalm, &mut state, SweepKind::Joint, timing, interrupt)?
             else {
                 return Ok(None);
             };
             if level == second && model.pre_sweeps() > 0 {
-                let Some(features) =
-                    time_sweeps(&ipalm, &mut state, SweepKind::FeaturesOnly, 1, interrupt)?
+                let Some(features) = time_sweeps(
+                    &ipalm,
+                    &mut state,
+                    SweepKind::FeaturesOnly,
+                    DEEP_TIMING,
+                    interrupt,
+                )?
                 else {
                     return Ok(None);
                 };
