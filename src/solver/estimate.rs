@@ -138,7 +138,7 @@ const MOST_TIMED_SWEEPS: usize = 40;
 
 /// The RGB model's calibration on each level: sweeps until a third of a second. Three
 /// sweeps of 128² (about 25 ms each on the 2-core AMD EPYC of docs/benchmarks.md) left the
-/// line to the machine's noise: five starts of the same `--quality paper` 512² morph
+/// line to the machine's noise: 14 starts of the same `--quality paper` 512² morph
 /// estimated 1 min 52 s … 3 min 34 s (2026-12-07; the run took 2 min 23 s and 2 min 49 s),
 /// and the 512² sweep is 16 times the 128² one. Timed so, 19 starts gave 2 min 00 s … 3 min
 /// 48 s, 16 of them 2 min 00 s … 2 min 29 s (of 14 starts before, 6 in that range): what
