@@ -136,6 +136,14 @@ struct Timing {
 /// The most sweeps [`Timing`] times on one level.
 const MOST_TIMED_SWEEPS: usize = 40;
 
+impl Timing {
+    /// Whether the sweeps timed so far, `seconds` each, are enough.
+    fn done(&self, seconds: &[f64]) -> bool {
+        seconds.len() >= MOST_TIMED_SWEEPS
+            || (seconds.len() >= self.sweeps && seconds.iter().sum::<f64>() >= self.seconds)
+    }
+}
+
 /// The RGB model's calibration on each level: sweeps until a third of a second. Three
 /// sweeps of 128² (about 25 ms each on the 2-core AMD EPYC of docs/benchmarks.md) left the
 /// line to the machine's noise: 14 starts of the same `--quality paper` 512² morph
@@ -176,9 +184,7 @@ fn time_sweeps(
     };
     sweep(state)?;
     let mut seconds: Vec<f64> = Vec::with_capacity(timing.sweeps);
-    while seconds.len() < MOST_TIMED_SWEEPS
-        && (seconds.len() < timing.sweeps || seconds.iter().sum::<f64>() < timing.seconds)
-    {
+    while !timing.done(&seconds) {
         if interrupt.load(Ordering::Relaxed) {
             return Ok(None);
         }
@@ -304,6 +310,22 @@ impl Multilevel {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn calibration_times_its_minimum_then_until_its_seconds_then_stops_at_the_cap() {
+        // RGB: three sweeps at least, then on until a third of a second.
+        assert!(!RGB_TIMING.done(&[0.2, 0.2]));
+        assert!(RGB_TIMING.done(&[0.2, 0.2, 0.2]));
+        assert!(!RGB_TIMING.done(&[0.026; 3]));
+        assert!(!RGB_TIMING.done(&[0.026; 11]));
+        assert!(RGB_TIMING.done(&[0.026; 12]));
+        // Sweeps of a millisecond stop at the cap, not after 300 of them.
+        assert!(!RGB_TIMING.done(&[0.001; MOST_TIMED_SWEEPS - 1]));
+        assert!(RGB_TIMING.done(&[0.001; MOST_TIMED_SWEEPS]));
+        // Deep: one sweep, however short.
+        assert!(!DEEP_TIMING.done(&[]));
+        assert!(DEEP_TIMING.done(&[0.001]));
+    }
 
     fn estimate() -> TimeEstimate {
         TimeEstimate {
