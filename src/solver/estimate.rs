@@ -150,8 +150,8 @@ impl Timing {
 /// estimated 1 min 52 s … 3 min 34 s (2026-12-07; the run took 2 min 23 s and 2 min 49 s),
 /// and the 512² sweep is 16 times the 128² one. Timed so, 19 starts gave 2 min 00 s … 3 min
 /// 48 s, 16 of them 2 min 00 s … 2 min 29 s (of 14 starts before, 6 in that range): what
-/// remains is the machine itself running a whole second slower (every sweep of the
-/// outliers' 128² level took 35–45 ms, against 25–30 ms).
+/// remains is the machine itself running a whole second slower (the one outlier whose sweeps
+/// were logged took 38–46 ms for each 128² sweep, the others 25–37 ms).
 const RGB_TIMING: Timing = Timing {
     sweeps: 3,
     seconds: 0.3,
